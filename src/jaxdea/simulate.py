@@ -1,0 +1,71 @@
+"""Trajectories of one drive case, through ``diffrax.diffeqsolve``.
+
+For plots and inspection (time histories like paper 000 Fig 8). Cycle-averaged metrics over
+many cells use :mod:`jaxdea.protocol`, which steps the same solver without storing anything.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import xarray as xr
+
+from .config import Model
+from .solver import LawsonRK4, SemilinearTerm
+from .sweep import SweepError, check_protocol, make_loadings
+
+
+@eqx.filter_jit
+def _solve(actuator, loading, ts):
+    term = SemilinearTerm(actuator.vector_field, actuator.linearisation)
+    sol = diffrax.diffeqsolve(
+        term, LawsonRK4(), t0=ts[0], t1=ts[-1], dt0=None, y0=actuator.initial_state(),
+        args=loading, saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.StepTo(ts=ts), max_steps=ts.shape[0],
+    )
+    obs = jax.vmap(lambda t, y: actuator.observables(t, y, loading))(sol.ts, sol.ys)
+    return sol.ys, obs
+
+
+def time_grid(frequency: float, cycles: int, points_per_cycle: int,
+              edge_fractions: np.ndarray) -> np.ndarray:
+    """Uniform grid of ``points_per_cycle`` per period plus every drive edge, sorted."""
+    k = np.arange(cycles * points_per_cycle + 1) / points_per_cycle
+    edges = (np.arange(cycles)[:, None] + np.asarray(edge_fractions)[None, :]).ravel()
+    return np.unique(np.round(np.concatenate([k, edges]), 12)) / frequency
+
+
+def simulate(model: Model, *, mass: float, damping: float, freq: float, drive: str = "A",
+             phase: float = 0.0, cycles: int = 10, points_per_cycle: int = 400) -> xr.Dataset:
+    """Time history of ``cycles`` drive periods from rest (fixed steps, edges on the grid).
+
+    Returns a Dataset over ``t`` (s) with payload position/velocity, each membrane's
+    deflection, force, DEA voltage, source voltage, current and charge.
+    """
+    check_protocol(cycles, 1)
+    if points_per_cycle < 8:
+        raise SweepError(f"points_per_cycle must be >= 8, got {points_per_cycle}")
+    loading = jax.tree_util.tree_map(lambda a: a[0],
+                                     make_loadings(model, mass, damping, freq, drive, phase))
+    ts = time_grid(float(freq), cycles, points_per_cycle,
+                   np.asarray(loading.drive.edge_fractions()))
+    ys, obs = _solve(model.actuator, loading, jnp.asarray(ts))
+    names = list(model.actuator.membrane_names)
+    per_mem = {"deflection": "m", "membrane_force": "N", "dea_voltage": "V",
+               "source_voltage": "V", "current": "A"}
+    data = {
+        "payload_position": (("t",), np.asarray(obs["payload_position"]), {"units": "m"}),
+        "payload_velocity": (("t",), np.asarray(obs["payload_velocity"]), {"units": "m/s"}),
+        "charge": (("t", "membrane"), np.asarray(ys.charge), {"units": "C"}),
+    }
+    for k, unit in per_mem.items():
+        data[k] = (("t", "membrane"), np.asarray(obs[k]), {"units": unit})
+    return xr.Dataset(
+        {k: xr.Variable(*v) for k, v in data.items()},
+        coords={"t": xr.Variable(("t",), ts, {"units": "s"}), "membrane": names},
+        attrs=dict(model=model.name, drive=drive, phase=float(phase), mass=float(mass),
+                   damping=float(damping), freq=float(freq)),
+    )

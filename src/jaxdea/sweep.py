@@ -1,0 +1,172 @@
+"""Frequency sweeps of a configured model: the papers' protocol over an f axis, as xarray.
+
+The whole frequency axis is one jitted computation (:func:`jaxdea.protocol.run_protocol`);
+there is no Python loop over frequencies.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import xarray as xr
+
+from .actuators.base import Loading
+from .config import ConfigError, Model
+from .payloads import LinearViscous
+from .protocol import STATUS, CycleMetrics, StepControl, run_protocol
+from .signals import SquareWave
+
+DRIVES = ("A", "B", "both")
+
+#: Units and descriptions of the per-cell outputs.
+VARIABLES = {
+    "P_out": ("W", "mean payload power over the averaging window (paper 000 eq 19)"),
+    "P_in": ("W", "mean electrical input power without energy recovery (eq 20)"),
+    "P_in_signed": ("W", "mean of Phi_in * i, charge returned to the source counted"),
+    "efficiency": ("1", "P_out / P_in (eq 21)"),
+    "amplitude": ("m", "half peak-to-peak payload displacement over the window"),
+    "v_rms": ("m/s", "RMS payload velocity over the window"),
+    "status": ("1", "; ".join(f"{k} = {v}" for k, v in STATUS.items())),
+    "steps": ("1", "solver steps taken (accepted and rejected)"),
+}
+
+_run = eqx.filter_jit(run_protocol)
+
+
+class SweepError(ValueError):
+    """Bad sweep arguments (checked before any computation)."""
+
+
+def _finite_array(name: str, value: Any, *, positive: bool = False,
+                  nonnegative: bool = False) -> np.ndarray:
+    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    if arr.size == 0:
+        raise SweepError(f"{name} is empty: give at least one value")
+    if not np.all(np.isfinite(arr)):
+        raise SweepError(f"{name} must be finite, got {value!r}")
+    if positive and np.any(arr <= 0):
+        raise SweepError(f"{name} must be > 0 (allowed range (0, inf)), got min {arr.min():g}")
+    if nonnegative and np.any(arr < 0):
+        raise SweepError(f"{name} must be >= 0 (allowed range [0, inf)), got min {arr.min():g}")
+    return arr
+
+
+def drive_pattern(model: Model, drive: str, phase: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-membrane amplitude multipliers and phases for a drive case.
+
+    ``"A"``: membrane A only (the single cone's one membrane is "A"); ``"B"``: membrane B only;
+    ``"both"``: A and B, B delayed by ``phase`` rad (0 = in-phase, pi = antiphase).
+    """
+    names = model.actuator.membrane_names
+    if drive not in DRIVES:
+        raise SweepError(f"drive = {drive!r} must be one of {', '.join(DRIVES)}")
+    if drive != "A" and len(names) == 1:
+        raise SweepError(f"drive = {drive!r}: {model.name or 'this model'} has one membrane; "
+                         "use drive='A'")
+    if not math.isfinite(phase):
+        raise SweepError(f"phase must be finite (allowed range [0, 2 pi)), got {phase!r}")
+    if not 0.0 <= phase < 2.0 * math.pi:
+        raise SweepError(f"phase = {phase!r} rad is outside the allowed range [0, 2 pi)")
+    on = np.array([drive in ("both", n) for n in names], dtype=float)
+    phases = np.where(np.array(names) == "B", phase if drive == "both" else 0.0, 0.0)
+    return on, phases
+
+
+def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
+                  phase: float = 0.0) -> Loading:
+    """Loadings for the broadcast of ``mass``, ``damping``, ``freq`` (flattened, C order)."""
+    mass = _finite_array("mass", mass, nonnegative=True)
+    damping = _finite_array("damping", damping, nonnegative=True)
+    freq = _finite_array("freq", freq, positive=True)
+    on, phases = drive_pattern(model, drive, float(phase))
+    m, c, f = (a.ravel() for a in np.broadcast_arrays(mass, damping, freq))
+    n = f.size
+    amp = jnp.asarray(on)[None, :] * model.voltage
+    return Loading(
+        drive=SquareWave(
+            amplitude=jnp.broadcast_to(amp, (n, on.size)),
+            frequency=jnp.asarray(f),
+            duty=jnp.broadcast_to(model.duty, (n,)),
+            phase=jnp.broadcast_to(jnp.asarray(phases), (n, on.size)),
+        ),
+        payload=LinearViscous(mass=jnp.asarray(m), damping=jnp.asarray(c)),
+    )
+
+
+def check_protocol(cycles: int, average: int) -> None:
+    for name, v in (("cycles", cycles), ("average", average)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise SweepError(f"{name} must be an integer >= 1, got {v!r}")
+    if average > cycles:
+        raise SweepError(f"average = {average} must be <= cycles = {cycles}")
+
+
+def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: int = 5,
+              control: StepControl = StepControl(), lanes: int | None = None) -> CycleMetrics:
+    """Run the protocol on a flat batch of cells (one compiled call, cached per shape)."""
+    check_protocol(cycles, average)
+    if not isinstance(model, Model):
+        raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
+    n = loadings.drive.frequency.shape[0]
+    return _run(model.actuator, loadings, cycles=int(cycles), average=int(average),
+                control=control, lanes=lanes or default_lanes(n))
+
+
+def default_lanes(n_cells: int) -> int:
+    """Lane-pool size: enough to amortise per-step overhead, not so many that the longest
+    (lowest-frequency) cell stretches the run (measured on a 2-core CPU; see bench/)."""
+    return int(min(n_cells, 32))
+
+
+def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
+          phase: float = 0.0, cycles: int = 100, average: int = 5,
+          control: StepControl = StepControl(), lanes: int | None = None) -> xr.Dataset:
+    """Frequency response of ``model`` under the papers' protocol.
+
+    ``mass`` (kg) and ``damping`` (N s/m) of the payload, ``freq`` (Hz, 1-D), ``drive`` one of
+    ``"A"``, ``"B"``, ``"both"``; ``phase`` (rad) of B relative to A when both are driven.
+    Each frequency runs ``cycles`` periods from rest; metrics average the last ``average``.
+    Returns a Dataset with dimension ``f`` and variables P_out, P_in, P_in_signed,
+    efficiency, amplitude, v_rms, status (units in attrs).
+    """
+    freq = _finite_array("freq", freq, positive=True)
+    if freq.ndim != 1:
+        raise SweepError(f"freq must be 1-D, got shape {freq.shape}")
+    for name, v in (("mass", mass), ("damping", damping)):
+        if np.ndim(v) != 0:
+            raise SweepError(f"{name} must be a scalar for a sweep (use powermap for grids)")
+    loadings = make_loadings(model, mass, damping, freq, drive, phase)
+    res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
+                    lanes=lanes)
+    return to_dataset(res, {"f": freq}, attrs=dict(
+        model=model.name, drive=drive, phase=float(phase), mass=float(mass),
+        damping=float(damping), cycles=int(cycles), average=int(average),
+        rtol=control.rtol, voltage=float(model.voltage), duty=float(model.duty),
+    ))
+
+
+def to_dataset(res: CycleMetrics, coords: dict[str, np.ndarray], attrs: dict) -> xr.Dataset:
+    """Per-cell results (flat, C order over ``coords``) as a labelled Dataset."""
+    shape = tuple(len(v) for v in coords.values())
+    dims = tuple(coords)
+    data = {}
+    for name, (unit, desc) in VARIABLES.items():
+        values = np.asarray(getattr(res, name)).reshape(shape)
+        data[name] = xr.Variable(dims, values, attrs={"units": unit, "long_name": desc})
+    coord_attrs = {"f": ("Hz", "drive frequency"), "M": ("kg", "payload mass"),
+                   "c": ("N s/m", "payload damping"), "phase": ("rad", "phase of B")}
+    ds = xr.Dataset(
+        data,
+        coords={k: xr.Variable((k,), np.asarray(v), attrs={
+            "units": coord_attrs.get(k, ("", ""))[0],
+            "long_name": coord_attrs.get(k, ("", ""))[1]}) for k, v in coords.items()},
+        attrs={k: v for k, v in attrs.items() if v is not None},
+    )
+    attr_units = {"mass": "kg", "damping": "N s/m", "phase": "rad", "voltage": "V"}
+    ds.attrs["attribute_units"] = ", ".join(f"{k}: {u}" for k, u in attr_units.items()
+                                            if k in ds.attrs)
+    return ds
