@@ -85,6 +85,13 @@ class GentMaxwell(eqx.Module):
         """Total mechanical stress: equilibrium spring + Maxwell branch (eq 10 / 12 less E)."""
         return self.equilibrium_stress(l1, l2) + self.viscous_stress(l1, xi)
 
+    def stress_and_rate(self, l1: ArrayLike, l2: ArrayLike, xi: ArrayLike) -> tuple[Array, Array]:
+        """``(stress(l1, l2, xi), dashpot_rate(l1, xi))`` sharing the branch evaluation
+        (the hot path of every simulation)."""
+        s1, s2 = self.branch_stresses(l1, xi)
+        rate = xi * (s1 - 0.5 * s2) / (3.0 * self.mu_B * self.tau)
+        return self.equilibrium_stress(l1, l2) + s1, rate
+
 
 def electrostatic_stress(eps: ArrayLike, field: ArrayLike) -> Array:
     """Maxwell stress of the electric field, ``-eps E^2`` (paper 000 eq 10, third term)."""

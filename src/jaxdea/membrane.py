@@ -103,16 +103,14 @@ class ConeMembrane(eqx.Module):
         lam_m1, lam_m2, lam_el1, h_m, h_el, sin_a, cos_a = self.kinematics(d)
         cap = capacitance(self.permittivity, self.inner_radius, self.outer_radius, h_m, cos_a)
         voltage = charge / cap
-        sigma_m = (
-            self.dielectric.stress(lam_m1, lam_m2, xi_m)
-            + electrostatic_stress(self.permittivity, voltage / h_m)
-        )  # eq 10
-        sigma_el = self.electrode.stress(lam_el1, 1.0, xi_el)  # eq 12
+        mech_m, dxi_m = self.dielectric.stress_and_rate(lam_m1, lam_m2, xi_m)
+        sigma_m = mech_m + electrostatic_stress(self.permittivity, voltage / h_m)  # eq 10
+        sigma_el, dxi_el = self.electrode.stress_and_rate(lam_el1, 1.0, xi_el)  # eq 12
         return MembraneResponse(
             force=self._axial(d, sigma_m, sigma_el, h_m, h_el, sin_a),
             current=charge_rate(phi_in, charge, cap, self.electrode_resistance),
-            dxi_m=self.dielectric.dashpot_rate(lam_m1, xi_m),
-            dxi_el=self.electrode.dashpot_rate(lam_el1, xi_el),
+            dxi_m=dxi_m,
+            dxi_el=dxi_el,
             voltage=voltage,
         )
 

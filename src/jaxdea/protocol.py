@@ -207,15 +207,16 @@ def run_protocol(
     """Run ``cycles`` periods from rest for every cell of ``loadings`` (leading axis = cells)
     and average the last ``average`` periods. Jittable; ``model`` is shared by all cells.
 
-    ``lanes``: size of the lane pool (default: enough to keep the longest cell on the critical
-    path, at most 256); ``steps_per_round``: steps between two queue updates.
+    ``lanes``: size of the lane pool (default 32: on a 2-core CPU the per-lane cost dominates
+    beyond that, and the longest cell is the critical path); ``steps_per_round``: steps
+    between two queue updates.
     """
     if not (isinstance(cycles, int) and isinstance(average, int) and 1 <= average <= cycles):
         raise ValueError(
             f"need integers 1 <= average <= cycles, got average={average}, cycles={cycles}"
         )
     n_cells = jax.tree_util.tree_leaves(loadings)[0].shape[0]
-    n_lanes = int(min(n_cells, lanes or 64))
+    n_lanes = int(min(n_cells, lanes or 32))
     solver = LawsonRK4()
     term = SemilinearTerm(model.vector_field, model.linearisation)
     y0 = model.initial_state()

@@ -2,7 +2,7 @@
 
 Why: the RC charge equation of a DEA, ``dQ/dt = (Phi_in - Q/C(d)) / (2 R_s)``, relaxes in
 ``2 R_s C`` ~ 49 us, while the mechanics moves on the millisecond scale. Explicit RK4 is
-unstable above dt ~ 136 us (reference/performance.md) and needs ~200 steps per cycle to get
+unstable above dt ~ 136 us (shared reference performance.md) and needs ~200 steps per cycle to get
 P_in right; implicit solvers pay a Newton solve per stage. This solver integrates the stiff
 part exactly instead, so the step is set by the mechanics.
 
@@ -21,7 +21,7 @@ voltage, unlike plain Lawson with the source in ``N``).
 Piecewise-constant drives: the vector field is sampled strictly inside each step (the stage
 times 0 and h are nudged inwards by 1e-9 h) and the linearisation at the step midpoint, so a
 square-wave edge that sits on a step boundary belongs to the correct side. Put edges on step
-boundaries (``diffrax.StepTo`` or :mod:`jaxdea.engine`).
+boundaries (``diffrax.StepTo``; :mod:`jaxdea.protocol` clips its adaptive steps to them).
 """
 
 from __future__ import annotations
