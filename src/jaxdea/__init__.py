@@ -4,6 +4,8 @@ Public API (everything else may change):
 
 - :func:`load_config` -> :class:`Model` (validated TOML config, SI units)
 - :func:`sweep` -> ``xarray.Dataset`` over frequency (paper 000 protocol)
+- :func:`powermap` -> ``xarray.Dataset`` over payload mass x damping x frequency (x phase):
+  chunked, sharded over all JAX devices, resumable from a Zarr/NetCDF store
 - :func:`simulate` -> trajectory of one drive case (diffrax)
 - building blocks: :class:`GentMaxwell`, :class:`ConeMembrane`, :class:`SCDEA_LS`,
   :class:`DCDEA_RR`, :class:`DCDEA_LS`, :class:`SquareWave`, :class:`LinearViscous`,
@@ -27,10 +29,11 @@ from .signals import SquareWave  # noqa: E402
 from .simulate import simulate  # noqa: E402
 from .solver import LawsonRK4, SemilinearTerm  # noqa: E402
 from .sweep import SweepError, make_loadings, sweep  # noqa: E402
+from .powermap import powermap  # noqa: E402
 
 __all__ = [
     "ConeActuator", "ConeMembrane", "ConeState", "ConfigError", "CycleMetrics", "DCDEA_LS",
     "DCDEA_RR", "GentMaxwell", "LawsonRK4", "LinearViscous", "Loading", "Model", "SCDEA_LS",
     "STATUS", "SemilinearTerm", "SquareWave", "StepControl", "SweepError", "load_config",
-    "make_loadings", "model_from_dict", "run_protocol", "simulate", "sweep",
+    "make_loadings", "model_from_dict", "powermap", "run_protocol", "simulate", "sweep",
 ]

@@ -1,0 +1,185 @@
+"""On-disk side of :func:`jaxdea.powermap`: chunk parts, the run manifest, the final store.
+
+Why: a full power map is hours of compute, so a killed run must lose at most the chunk in
+flight. Each finished chunk is written at once to ``<store>.parts/chunk_NNNNNN.npz`` (a temp
+name, then ``os.replace``, so a chunk file is either complete or absent). The parts folder also
+holds ``manifest.json`` with a hash of every setting that determines the result; a resumed run
+only reuses chunks whose manifest hash matches its own, so parts of a different run are never
+mixed in. When all chunks are done the Dataset is written to the final store (NetCDF or Zarr,
+by suffix), again via a temp name renamed into place, and the parts folder is removed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from .sweep import SweepError
+
+SUFFIXES = (".zarr", ".nc")
+MANIFEST = "manifest.json"
+
+
+def jaxdea_version() -> str:
+    try:
+        return metadata.version("jaxdea")
+    except metadata.PackageNotFoundError:  # pragma: no cover - source tree without install
+        return "unknown"
+
+
+def check_store_path(store: str | os.PathLike) -> Path:
+    """The store path, checked: it must end in .zarr or .nc."""
+    path = Path(store)
+    if path.suffix not in SUFFIXES:
+        raise SweepError(f"store must end in .zarr (Zarr) or .nc (NetCDF), got {str(path)!r}")
+    return path
+
+
+def settings_hash(settings: dict[str, Any]) -> str:
+    """SHA-256 of the canonical JSON of ``settings`` (floats written exactly by ``repr``)."""
+    text = json.dumps(settings, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _atomic_write_bytes(path: Path, write) -> None:
+    """Write through ``write(fh)`` to a hidden temp file, fsync, then rename into place."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as fh:
+        write(fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class Parts:
+    """The ``<store>.parts`` folder of one run: manifest plus one ``.npz`` per finished chunk."""
+
+    def __init__(self, store: Path, settings: dict[str, Any], n_chunks: int):
+        self.dir = store.with_name(store.name + ".parts")
+        self.settings = settings
+        self.hash = settings_hash(settings)
+        self.n_chunks = n_chunks
+        self.width = max(6, len(str(max(n_chunks - 1, 0))))
+
+    def path(self, i: int) -> Path:
+        return self.dir / f"chunk_{i:0{self.width}d}.npz"
+
+    def _differences(self, old: dict[str, Any]) -> list[str]:
+        keys = sorted(set(old) | set(self.settings))
+        return [k for k in keys if old.get(k) != self.settings.get(k)]
+
+    def open(self, resume: bool) -> set[int]:
+        """Prepare the folder; return the chunk indices already finished (resume only).
+
+        Raises :class:`SweepError` when the folder belongs to a different run, or when it
+        holds finished chunks of this run but ``resume`` is off (so finished work is never
+        discarded silently; a folder of this run with no finished chunk is simply reused).
+        """
+        manifest = self.dir / MANIFEST
+        if self.dir.exists():
+            try:
+                old = json.loads(manifest.read_text())
+            except (OSError, ValueError):
+                old = None
+            if old is None and not any(self.dir.glob("chunk_*.npz")):
+                shutil.rmtree(self.dir)  # killed before its manifest was written: nothing lost
+                return self.open(resume)
+            if old is None or old.get("hash") != self.hash:
+                diff = self._differences(old.get("settings", {})) if old else ["(no manifest)"]
+                what = "resume" if resume else "start"
+                raise SweepError(
+                    f"cannot {what}: {self.dir} holds the parts of a different run (settings "
+                    f"that differ: {', '.join(diff)}); rerun with the original settings and "
+                    f"--resume (resume=True), or delete {self.dir}"
+                )
+            done = self._finished()
+            if not resume and done:
+                raise SweepError(
+                    f"{self.dir} holds an interrupted run of these settings ({len(done)} of "
+                    f"{self.n_chunks} chunks done): pass --resume (resume=True) to continue it, "
+                    f"or delete {self.dir}"
+                )
+            return done
+        self.dir.mkdir(parents=True)
+        body = {"hash": self.hash, "n_chunks": self.n_chunks, "settings": self.settings}
+        _atomic_write_bytes(manifest, lambda fh: fh.write(json.dumps(body, indent=1).encode()))
+        return set()
+
+    def _finished(self) -> set[int]:
+        return {i for i in range(self.n_chunks) if self.path(i).exists()}
+
+    def save(self, i: int, arrays: dict[str, np.ndarray]) -> None:
+        """Write chunk ``i`` atomically (with the run hash, checked on load)."""
+        _atomic_write_bytes(self.path(i), lambda fh: np.savez(
+            fh, __hash__=np.array(self.hash), **arrays))
+
+    def load(self, i: int, n: int, names) -> dict[str, np.ndarray] | None:
+        """Chunk ``i`` (``n`` cells), or None when the file is unreadable or not this run's."""
+        try:
+            with np.load(self.path(i)) as z:
+                if str(z["__hash__"]) != self.hash:
+                    return None
+                out = {k: z[k] for k in names}
+        except (OSError, KeyError, ValueError):
+            return None
+        return out if all(v.shape == (n,) for v in out.values()) else None
+
+    def remove(self) -> None:
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def _zarr_encoding(ds: xr.Dataset) -> dict[str, dict]:
+    """Chunk the grid variables along M, about 1 Mi values per chunk."""
+    enc = {}
+    for name, var in ds.data_vars.items():
+        rest = int(np.prod(var.shape[1:])) if var.ndim > 1 else 1
+        first = max(1, min(var.shape[0], (1 << 20) // max(rest, 1))) if var.ndim else None
+        if first is not None:
+            enc[name] = {"chunks": (first,) + tuple(var.shape[1:])}
+    return enc
+
+
+def write_store(ds: xr.Dataset, store: Path) -> None:
+    """Write ``ds`` to ``store`` (.nc: NetCDF4 via h5netcdf; .zarr: Zarr) atomically: a temp
+    name is written and renamed into place, so a killed run never leaves a partial store."""
+    store = check_store_path(store)
+    store.parent.mkdir(parents=True, exist_ok=True)
+    tmp = store.with_name(store.name + ".tmp")
+    if store.suffix == ".nc":
+        ds.to_netcdf(tmp, engine="h5netcdf")
+        os.replace(tmp, store)
+        return
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    ds.to_zarr(tmp, mode="w", encoding=_zarr_encoding(ds), consolidated=False)
+    if store.exists():  # a directory cannot be os.replace'd over a non-empty one
+        old = store.with_name(store.name + ".old")
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(store, old)
+        os.replace(tmp, store)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, store)
+
+
+def open_map(path: str | os.PathLike) -> xr.Dataset:
+    """Read a power-map store (.zarr or .nc) fully into memory."""
+    path = Path(path)
+    if path.suffix not in SUFFIXES:
+        raise SweepError(f"map must be a .zarr or .nc store, got {str(path)!r}")
+    if not path.exists():
+        raise SweepError(f"map not found: {path}")
+    if path.suffix == ".nc":
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            return ds.load()
+    with xr.open_zarr(path, consolidated=False) as ds:
+        return ds.load()

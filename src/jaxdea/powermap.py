@@ -1,0 +1,317 @@
+"""Power maps: the papers' protocol over a whole [M, c, f(, phase)] grid, as one xarray Dataset.
+
+Why this shape: paper 000's Figs 7-11 need P_out for every payload (M, c) and frequency f, i.e.
+millions of independent cells. The cells are flattened in C order over (M, c, f, phase) and
+run in chunks of one fixed size through :func:`jaxdea.protocol.run_protocol` (one compiled
+executable for every chunk: the last chunk is padded by repeating its last cell, and the
+padding is dropped). Chunks only bound memory and give resumable units of work; within a chunk
+the cells are split evenly across all visible JAX devices (``jax.shard_map`` over a 1-D mesh;
+each device runs its own lane pool on its slice). The per-cell arithmetic does not depend on
+which lane or device runs a cell, so a map equals the same cells run by :func:`jaxdea.sweep`.
+
+With ``store`` every finished chunk goes to disk at once (see :mod:`jaxdea.mapstore`), so a
+killed run restarted with ``resume=True`` recomputes only the missing chunks and writes a store
+identical to an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import xarray as xr
+from jax.sharding import Mesh, PartitionSpec
+from tqdm.auto import tqdm
+
+from .actuators.base import Loading
+from .config import ConfigError, Model
+from .mapstore import Parts, check_store_path, jaxdea_version, write_store
+from .payloads import LinearViscous
+from .protocol import STATUS, StepControl, run_protocol
+from .signals import SquareWave
+from .sweep import (DRIVES, VARIABLES, SweepError, _finite_array, check_protocol, default_lanes,
+                    drive_pattern, run_cells, to_dataset)
+
+PROTOCOLS = ("paper", "continuation", "periodic")
+#: Protocols accepted by the CLI but not implemented yet.
+PLANNED = {
+    "continuation": "frequency continuation (each f starts from the previous f's final state)",
+    "periodic": "periodic steady state by shooting on the one-period map",
+}
+#: Default chunk size per device: large enough that the lane pool stays busy and the slowest
+#: (lowest-frequency) cell is not the critical path, small enough for a fine progress bar.
+CHUNK_PER_DEVICE = 1024
+_BYTES_PER_CELL = 8 * len(VARIABLES)
+
+
+def _axis(name: str, values, *, positive: bool = False, nonnegative: bool = False) -> np.ndarray:
+    """A validated, 1-D, strictly increasing axis."""
+    arr = _finite_array(name, values, positive=positive, nonnegative=nonnegative)
+    if arr.ndim != 1:
+        raise SweepError(f"{name} must be a 1-D axis, got shape {arr.shape}")
+    if arr.size > 1 and not np.all(np.diff(arr) > 0):
+        raise SweepError(f"{name} must be strictly increasing (sorted, no repeated values)")
+    return arr
+
+
+def _available_memory() -> int:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def _check_size(shape: tuple[int, ...], dims: tuple[str, ...], store: Path | None) -> None:
+    """Fail before computing when the results would not fit in memory or on disk."""
+    n = math.prod(shape)
+    need = n * _BYTES_PER_CELL
+    grid = " x ".join(f"{d} {s}" for d, s in zip(dims, shape))
+    args = "/".join({"M": "mass", "c": "damping", "f": "freq"}.get(d, d) for d in dims)
+    mem = _available_memory()
+    if 3 * need > mem:  # results + Dataset copy + writer buffers
+        raise SweepError(f"grid {grid} = {n} cells needs ~{3 * need / 2**30:.1f} GiB of memory "
+                         f"for its results, {mem / 2**30:.1f} GiB available: shrink {args}")
+    if store is not None:
+        free = shutil.disk_usage(store.parent if store.parent.exists() else Path.cwd()).free
+        if 2 * need > free:  # chunk parts + final store
+            raise SweepError(f"grid {grid} = {n} cells needs ~{2 * need / 2**30:.1f} GiB on "
+                             f"disk, {free / 2**30:.1f} GiB free at {store.parent}: shrink {args}")
+
+
+def _check_control(control: StepControl) -> None:
+    if not isinstance(control, StepControl):
+        raise SweepError("control must be a jaxdea.StepControl")
+    if not (math.isfinite(control.rtol) and 0 < control.rtol < 1):
+        raise SweepError(f"rtol = {control.rtol!r} is outside the allowed range (0, 1)")
+    if not (math.isfinite(control.dt_max) and control.dt_max > 0):
+        raise SweepError(f"dt_max = {control.dt_max!r} must be > 0 (allowed range (0, inf))")
+    steps = control.max_steps
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise SweepError(f"max_steps must be an integer >= 1, got {control.max_steps!r}")
+
+
+def _model_settings(model: Model) -> dict[str, Any]:
+    """Every parameter of the model as ``{path: value}`` (JSON-able, exact floats)."""
+    leaves = jax.tree_util.tree_flatten_with_path(model)[0]
+    out = {"name": model.name}
+    for path, leaf in leaves:
+        try:
+            out[jax.tree_util.keystr(path)] = np.asarray(leaf, dtype=float).tolist()
+        except (TypeError, ValueError):
+            out[jax.tree_util.keystr(path)] = repr(leaf)
+    return out
+
+
+@dataclass
+class _Grid:
+    """The validated grid and drive: builds the loadings of any range of flat cell indices."""
+
+    axes: dict  # name -> 1-D numpy axis, in output order
+    shape: tuple
+    amplitude: np.ndarray  # (n_phase, n_membranes), V
+    phases: np.ndarray  # (n_phase, n_membranes), rad
+    duty: float
+
+    def loadings(self, idx: np.ndarray) -> Loading:
+        """Loadings of flat (C-order) cells ``idx``; same values as :func:`make_loadings`."""
+        full = self.shape if len(self.shape) == 4 else self.shape + (1,)
+        im, ic, jf, jp = np.unravel_index(idx, full)
+        n = idx.size
+        return Loading(
+            drive=SquareWave(
+                amplitude=jnp.asarray(self.amplitude[jp]),
+                frequency=jnp.asarray(self.axes["f"][jf]),
+                duty=jnp.broadcast_to(jnp.asarray(self.duty), (n,)),
+                phase=jnp.asarray(self.phases[jp]),
+            ),
+            payload=LinearViscous(mass=jnp.asarray(self.axes["M"][im]),
+                                  damping=jnp.asarray(self.axes["c"][ic])),
+        )
+
+
+_SHARDED: dict = {}
+
+
+def _sharded_runner(devices: tuple):
+    """A jitted runner splitting the cells of a chunk evenly over ``devices`` (cached)."""
+    key = tuple(d.id for d in devices)
+    if key not in _SHARDED:
+        mesh = Mesh(np.array(devices), ("cells",))
+
+        def run(actuator, loadings, *, cycles, average, control, lanes):
+            dyn, static = eqx.partition(actuator, eqx.is_array)
+
+            def body(dyn, part):
+                res = run_protocol(eqx.combine(dyn, static), part, cycles=cycles,
+                                   average=average, control=control, lanes=lanes)
+                return {k: getattr(res, k) for k in VARIABLES}
+
+            # check_vma off: run_protocol's while_loop carry starts from replicated values (the
+            # model's rest state) that become device-varying, which the vma check rejects
+            cells = PartitionSpec("cells")
+            return jax.shard_map(body, mesh=mesh, in_specs=(PartitionSpec(), cells),
+                                 out_specs=cells, check_vma=False)(dyn, loadings)
+
+        _SHARDED[key] = eqx.filter_jit(run)
+    return _SHARDED[key]
+
+
+def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, cycles, average,
+               control) -> dict[str, np.ndarray]:
+    n = loadings.drive.frequency.shape[0]
+    if len(devices) == 1:  # the same compiled call as jaxdea.sweep of n cells
+        res = run_cells(model, loadings, cycles=cycles, average=average, control=control)
+        out = {k: getattr(res, k) for k in VARIABLES}
+    else:
+        run = _sharded_runner(devices)
+        out = run(model.actuator, loadings, cycles=cycles, average=average, control=control,
+                  lanes=default_lanes(n // len(devices)))
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
+    """P_max and f_at_P_max over f, among cells with status 0 (NaN where none is ok)."""
+    ok = ds["status"] == 0
+    p = ds["P_out"].where(ok, -np.inf)
+    i = p.argmax("f")
+    any_ok = ok.any("f")
+    p_max = ds["P_out"].isel(f=i).where(any_ok)
+    f_at = ds["f"].isel(f=i).where(any_ok).drop_vars("f", errors="ignore")
+    p_max = p_max.drop_vars("f", errors="ignore")
+    ds["P_max"] = p_max.assign_attrs(
+        units="W", long_name="max over f of P_out among cells with status 0 (NaN: none ok)")
+    ds["f_at_P_max"] = f_at.assign_attrs(units="Hz", long_name="frequency of P_max")
+    return ds
+
+
+def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
+             protocol: str = "paper", cycles: int = 100, average: int = 5,
+             control: StepControl = StepControl(), chunk_cells: int | None = None,
+             store: str | os.PathLike | None = None, resume: bool = False,
+             progress: bool = True) -> xr.Dataset:
+    """Power map of ``model`` over payload mass x damping x frequency (x phase).
+
+    ``mass`` (kg, >= 0), ``damping`` (N s/m, >= 0), ``freq`` (Hz, > 0): 1-D increasing axes.
+    ``phase`` (rad, in [0, 2 pi)): optional axis of B's delay, only with ``drive="both"``.
+    ``protocol="paper"``: ``cycles`` periods from rest per cell, mean of the last ``average``.
+    ``chunk_cells``: cells per compiled call (rounded up to a multiple of the device count;
+    default 1024 per device). ``store`` (``.zarr`` or ``.nc``): write each finished chunk to
+    ``<store>.parts`` and the final Dataset to ``store``; ``resume=True`` reuses the finished
+    chunks of an interrupted run with identical settings. ``progress``: tqdm bar over chunks.
+
+    Returns a Dataset with dims (M, c, f[, phase]) and variables P_out, P_in, P_in_signed,
+    efficiency, amplitude, v_rms, status (0 = ok, see :data:`jaxdea.STATUS`), steps, plus P_max
+    and f_at_P_max (reduced over f). ``attrs["chunks_computed"]`` and
+    ``attrs["chunks_reused"]`` count the work done by this call (not written to the store).
+    All arguments are checked before any computation (:class:`SweepError` naming the argument).
+    """
+    # ---- validation (nothing is computed before all of this passes) -------------------
+    if not isinstance(model, Model):
+        raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
+    if protocol not in PROTOCOLS:
+        raise SweepError(f"protocol = {protocol!r} must be one of {', '.join(PROTOCOLS)}")
+    if drive not in DRIVES:
+        raise SweepError(f"drive = {drive!r} must be one of {', '.join(DRIVES)}")
+    axes = {"M": _axis("mass", mass, nonnegative=True),
+            "c": _axis("damping", damping, nonnegative=True),
+            "f": _axis("freq", freq, positive=True)}
+    if phase is not None:
+        if drive != "both":
+            raise SweepError(f"phase is only used with drive='both' (B delayed against A); "
+                             f"got drive={drive!r}: drop phase or use drive='both'")
+        axes["phase"] = _axis("phase", phase)
+        bad = axes["phase"][(axes["phase"] < 0) | (axes["phase"] >= 2 * math.pi)]
+        if bad.size:
+            raise SweepError(f"phase = {float(bad[0])!r} rad is outside the allowed range "
+                             "[0, 2 pi)")
+    phase_values = axes.get("phase", np.zeros(1))
+    patterns = [drive_pattern(model, drive, float(p)) for p in phase_values]
+    check_protocol(cycles, average)
+    _check_control(control)
+    if chunk_cells is not None and (isinstance(chunk_cells, bool) or not isinstance(
+            chunk_cells, (int, np.integer)) or chunk_cells < 1):
+        raise SweepError(f"chunk_cells must be an integer >= 1, got {chunk_cells!r}")
+    store = check_store_path(store) if store is not None else None
+    if resume and store is None:
+        raise SweepError("resume=True needs a store (the path of the interrupted run's output)")
+    shape = tuple(a.size for a in axes.values())
+    _check_size(shape, tuple(axes), store)
+    if protocol in PLANNED:
+        raise NotImplementedError(f"protocol {protocol!r} ({PLANNED[protocol]}) is not "
+                                  "implemented yet; use protocol='paper'")
+
+    # ---- chunking -----------------------------------------------------------------------
+    devices = tuple(jax.devices())
+    n_cells = math.prod(shape)
+    chunk = int(chunk_cells or CHUNK_PER_DEVICE * len(devices))
+    chunk = min(chunk, -(-n_cells // len(devices)) * len(devices))  # no more than the grid
+    chunk = -(-chunk // len(devices)) * len(devices)  # a multiple of the device count
+    n_chunks = -(-n_cells // chunk)
+    grid = _Grid(axes=axes, shape=shape,
+                 amplitude=np.stack([on * float(model.voltage) for on, _ in patterns]),
+                 phases=np.stack([ph for _, ph in patterns]), duty=float(model.duty))
+    attrs = dict(model=model.name, drive=drive, protocol=protocol, cycles=int(cycles),
+                 average=int(average), rtol=float(control.rtol), dt_max=float(control.dt_max),
+                 max_steps=int(control.max_steps), voltage=float(model.voltage),
+                 duty=float(model.duty), jaxdea_version=jaxdea_version())
+    if drive == "both" and phase is None:
+        attrs["phase"] = 0.0
+
+    parts, done = None, set()
+    if store is not None:
+        settings = dict(attrs, config=_model_settings(model), chunk_cells=chunk,
+                        axes={k: v.tolist() for k, v in axes.items()})
+        parts = Parts(store, settings, n_chunks)
+        done = parts.open(resume)
+
+    # ---- run ----------------------------------------------------------------------------
+    results = {k: np.empty(n_cells, dtype=np.int32 if k in ("status", "steps") else float)
+               for k in VARIABLES}
+    computed = reused = 0
+    bar = tqdm(total=n_chunks - len(done), desc="powermap chunks", unit="chunk",
+               disable=not progress, postfix={"reused": len(done)} if done else None)
+    try:
+        for i in range(n_chunks):
+            lo, hi = i * chunk, min((i + 1) * chunk, n_cells)
+            got = parts.load(i, hi - lo, VARIABLES) if i in done else None
+            if got is not None:
+                reused += 1
+            else:
+                if i in done:  # unreadable part: count it as computed work
+                    bar.total += 1
+                idx = np.minimum(np.arange(lo, lo + chunk), hi - 1)  # pad: repeat last cell
+                out = _run_chunk(model, grid.loadings(idx), devices, cycles=int(cycles),
+                                 average=int(average), control=control)
+                got = {k: v[: hi - lo] for k, v in out.items()}
+                if parts is not None:
+                    parts.save(i, got)
+                computed += 1
+                bar.update(1)
+            for k in VARIABLES:
+                results[k][lo:hi] = got[k]
+    finally:
+        bar.close()
+
+    # ---- assemble -----------------------------------------------------------------------
+    ds = to_dataset(SimpleNamespace(**results), axes, attrs)
+    ds.attrs["status_codes"] = "; ".join(f"{k} = {v}" for k, v in STATUS.items())
+    ds = _reduce_over_f(ds)
+    if store is not None:
+        write_store(ds, store)
+        parts.remove()
+    ds.attrs["chunks_computed"] = computed
+    ds.attrs["chunks_reused"] = reused
+    return ds
