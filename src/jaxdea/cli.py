@@ -1,4 +1,4 @@
-"""``jaxdea`` command line: ``jaxdea sweep CONFIG ...`` (see ``jaxdea sweep --help``)."""
+"""``jaxdea`` command line: ``jaxdea sweep|powermap|plot ...`` (see ``jaxdea COMMAND --help``)."""
 
 from __future__ import annotations
 
@@ -28,6 +28,55 @@ def parse_range(text: str, name: str = "--freq") -> np.ndarray:
         raise ValueError(f"{name} is empty: MAX = {hi:g} < MIN = {lo:g}")
     n = int(math.floor((hi - lo) / step + 1e-9)) + 1
     return np.round(lo + step * np.arange(n), 12)
+
+
+def parse_points(text: str, name: str) -> np.ndarray:
+    """``MIN:MAX:N[:log|:lin]`` -> ``N`` points from MIN to MAX inclusive (default log)."""
+    parts = text.split(":")
+    if len(parts) not in (3, 4):
+        raise ValueError(f"{name} must be MIN:MAX:N[:log|:lin], got {text!r}")
+    scale = parts[3] if len(parts) == 4 else "log"
+    if scale not in ("log", "lin"):
+        raise ValueError(f"{name} spacing must be log or lin, got {scale!r}")
+    try:
+        lo, hi = float(parts[0]), float(parts[1])
+        n = int(parts[2])
+    except ValueError:
+        raise ValueError(f"{name} must be MIN:MAX:N with N an integer, got {text!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"{name} values must be finite, got {text!r}")
+    if n < 1:
+        raise ValueError(f"{name} is empty: N = {n} must be >= 1")
+    if hi < lo:
+        raise ValueError(f"{name} is inverted: MAX = {hi:g} < MIN = {lo:g}")
+    if n == 1 and hi != lo:
+        raise ValueError(f"{name}: N = 1 needs MIN = MAX, got {text!r}")
+    if n > 1 and hi == lo:
+        raise ValueError(f"{name}: MIN = MAX = {lo:g} with N = {n} repeats one value")
+    if scale == "log":
+        if lo <= 0:
+            raise ValueError(f"{name} with log spacing needs MIN > 0, got {lo:g} "
+                             "(use :lin for a range that starts at 0)")
+        return np.geomspace(lo, hi, n)
+    return np.linspace(lo, hi, n)
+
+
+def parse_phases(text: str, name: str = "--phase") -> np.ndarray:
+    """``MIN:MAX:N`` -> ``N`` points in [MIN, MAX) (MAX excluded: 0 and 2 pi are one phase)."""
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"{name} must be MIN:MAX:N, got {text!r}")
+    try:
+        lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
+    except ValueError:
+        raise ValueError(f"{name} must be MIN:MAX:N with N an integer, got {text!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"{name} values must be finite, got {text!r}")
+    if n < 1:
+        raise ValueError(f"{name} is empty: N = {n} must be >= 1")
+    if hi <= lo:
+        raise ValueError(f"{name} is empty or inverted: MAX = {hi:g} <= MIN = {lo:g}")
+    return lo + (hi - lo) * np.arange(n) / n
 
 
 def write_dataset(ds, out: Path) -> None:
@@ -66,6 +115,75 @@ def _sweep(args) -> int:
     return 0
 
 
+def _powermap(args) -> int:
+    import jax
+
+    import jaxdea
+    from jaxdea.mapstore import check_store_path
+    from jaxdea.plotting import plot_pmax
+
+    out = check_store_path(args.out)
+    mass = parse_points(args.mass, "--mass")
+    damping = parse_points(args.damping, "--damping")
+    freq = parse_range(args.freq, "--freq")
+    phase = parse_phases(args.phase) if args.phase is not None else None
+    if args.plot and not args.plot.endswith(".png"):
+        raise ValueError(f"--plot must end in .png, got {args.plot!r}")
+    model = jaxdea.load_config(args.config)
+    n = mass.size * damping.size * freq.size * (1 if phase is None else phase.size)
+    print(f"jaxdea powermap: {model.name}, drive {args.drive}, protocol {args.protocol}: "
+          f"{mass.size} M x {damping.size} c x {freq.size} f"
+          + (f" x {phase.size} phase" if phase is not None else "")
+          + f" = {n} cells, {args.cycles} cycles (average last {args.average}), "
+          f"{len(jax.devices())} device(s)", flush=True)
+    ds = jaxdea.powermap(model, mass=mass, damping=damping, freq=freq, phase=phase,
+                         drive=args.drive, protocol=args.protocol, cycles=args.cycles,
+                         average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
+                         chunk_cells=args.chunk, store=out, resume=args.resume,
+                         progress=not args.no_progress)
+    print(f"chunks: {ds.attrs['chunks_computed']} computed, {ds.attrs['chunks_reused']} reused",
+          flush=True)
+    bad = int((ds["status"] != 0).sum())
+    pmax = ds["P_max"]
+    if bool(pmax.notnull().any()):
+        flat = int(np.argmax(np.nan_to_num(pmax.values, nan=-np.inf)))
+        best = dict(zip(pmax.dims, np.unravel_index(flat, pmax.shape)))
+        at = {k: float(ds[k][v]) for k, v in best.items()}
+        print(f"wrote {out}: P_max {1e3 * float(pmax.isel(best)):.3f} mW at "
+              f"M = {1e3 * at['M']:g} g, c = {at['c']:g} N s/m"
+              + (f", phase = {at['phase']:g} rad" if "phase" in at else "")
+              + f", f = {float(ds['f_at_P_max'].isel(best)):g} Hz; {bad} failed cell(s)")
+    else:
+        print(f"wrote {out}: no cell finished with status 0; {bad} failed cell(s)")
+    if args.plot:
+        plot_pmax(ds, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _plot(args) -> int:
+    from jaxdea.mapstore import open_map
+    from jaxdea.plotting import plot_pmax, plot_pmax_ratio, plot_pout_fc
+
+    if not args.out.endswith(".png"):
+        raise ValueError(f"--out must end in .png, got {args.out!r}")
+    if args.kind == "ratio" and args.other is None:
+        raise ValueError("--kind ratio needs --other MAP2 (the denominator map)")
+    if args.kind != "ratio" and args.other is not None:
+        raise ValueError("--other is only used with --kind ratio")
+    if args.mass is not None and args.kind != "pout-f-c":
+        raise ValueError("--mass is only used with --kind pout-f-c")
+    ds = open_map(args.map)
+    if args.kind == "pmax":
+        plot_pmax(ds, args.out)
+    elif args.kind == "pout-f-c":
+        plot_pout_fc(ds, args.out, mass=args.mass)
+    else:
+        plot_pmax_ratio(ds, open_map(args.other), args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxdea", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -82,6 +200,40 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output NetCDF file (.nc)")
     s.add_argument("--plot", help="optional PNG: amplitude and P_out against f (Fig 6 style)")
     s.set_defaults(func=_sweep)
+
+    m = sub.add_parser("powermap", help="power map over payload mass x damping x frequency")
+    m.add_argument("config", help="TOML config, e.g. configs/dcdea_ls.toml")
+    m.add_argument("--mass", required=True,
+                   help="MIN:MAX:N[:log|:lin] payload masses M, kg (N points, default log)")
+    m.add_argument("--damping", required=True,
+                   help="MIN:MAX:N[:log|:lin] payload dampings c, N s/m (N points, default log)")
+    m.add_argument("--freq", required=True, help="FMIN:FMAX:DF in Hz (inclusive)")
+    m.add_argument("--phase", help="MIN:MAX:N phases of B vs A, rad: N points in [MIN, MAX) "
+                                   "(drive both only)")
+    m.add_argument("--drive", default="A", choices=["A", "B", "both"])
+    m.add_argument("--protocol", default="paper", choices=["paper", "continuation", "periodic"],
+                   help="paper: N cycles from rest per cell, mean of the last K")
+    m.add_argument("--cycles", type=int, default=100, help="drive periods per cell")
+    m.add_argument("--average", type=int, default=5, help="last periods averaged")
+    m.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
+    m.add_argument("--chunk", type=int, help="cells per compiled call (default 1024 per device)")
+    m.add_argument("--out", required=True, help="output store: .zarr (Zarr) or .nc (NetCDF)")
+    m.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run of the same settings (reuse its chunks)")
+    m.add_argument("--plot", help="optional PNG of P_max over M x c (paper 000 Fig 7 style)")
+    m.add_argument("--no-progress", action="store_true", help="no progress bar")
+    m.set_defaults(func=_powermap)
+
+    g = sub.add_parser("plot", help="figures of a power map (paper 000 Figs 7, 9, 10)")
+    g.add_argument("map", help="power-map store (.zarr or .nc)")
+    g.add_argument("--kind", required=True, choices=["pmax", "pout-f-c", "ratio"],
+                   help="pmax: P_max over M x c (Fig 7); pout-f-c: P_out over f x c at one M "
+                        "(Fig 9); ratio: P_max of MAP / P_max of --other (Fig 10)")
+    g.add_argument("--other", help="second map for --kind ratio (denominator)")
+    g.add_argument("--mass", type=float, help="payload mass for pout-f-c, kg (nearest M; "
+                                              "default: the M of the largest P_max)")
+    g.add_argument("--out", required=True, help="output PNG")
+    g.set_defaults(func=_plot)
     return p
 
 
@@ -92,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return args.func(args)
-    except (ConfigError, SweepError, ValueError) as exc:
+    except (ConfigError, SweepError, ValueError, NotImplementedError) as exc:
         print(f"jaxdea: error: {exc}", file=sys.stderr)
         return 2
 

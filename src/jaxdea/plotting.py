@@ -46,3 +46,145 @@ def plot_sweep(ds: xr.Dataset, path: str | Path | None = None):
         fig.savefig(path, dpi=130)
         plt.close(fig)
     return fig
+
+
+# ---- power maps (paper 000 Figs 7, 9, 10) ---------------------------------------------------
+
+
+def _edges(v: np.ndarray, log: bool) -> np.ndarray:
+    """Cell edges around the centres ``v`` (geometric midpoints on a log axis)."""
+    v = np.asarray(v, dtype=float)
+    if v.size == 1:
+        return v * np.array([0.9, 1.1]) if log else v + np.array([-0.5, 0.5])
+    w = np.log(v) if log else v
+    mid = 0.5 * (w[1:] + w[:-1])
+    e = np.concatenate([[2 * w[0] - mid[0]], mid, [2 * w[-1] - mid[-1]]])
+    return np.exp(e) if log else e
+
+
+def _is_log(v: np.ndarray) -> bool:
+    return bool(np.all(np.asarray(v) > 0) and np.asarray(v).size > 1)
+
+
+def _over_phase(da: xr.DataArray) -> tuple[xr.DataArray, str]:
+    """Max over the phase axis, if the map has one (with a note for the title)."""
+    if "phase" in da.dims:
+        return da.max("phase", skipna=True), ", max over phase"
+    return da, ""
+
+
+def _map_title(ds: xr.Dataset) -> str:
+    a = ds.attrs
+    return (f"{a.get('model', '')} drive {a.get('drive', '')}, {a.get('protocol', 'paper')} "
+            f"protocol ({a.get('cycles', '?')} cycles)")
+
+
+def _mc_mesh(ax, x, y, z, label, fig, *, norm=None, cmap="viridis", contours=True):
+    """pcolormesh of z[y, x] with log axes where possible, contour lines and a colorbar."""
+    xlog, ylog = _is_log(x), _is_log(y)
+    mesh = ax.pcolormesh(_edges(x, xlog), _edges(y, ylog), np.ma.masked_invalid(z),
+                         cmap=cmap, norm=norm, shading="flat")
+    if contours and min(z.shape) >= 2 and np.isfinite(z).sum() >= 4:
+        try:
+            cs = ax.contour(x, y, np.ma.masked_invalid(z), colors="k", linewidths=0.6,
+                            norm=norm, levels=8 if norm is None else None)
+            ax.clabel(cs, fontsize=7, fmt="%.3g")
+        except (ValueError, TypeError):  # degenerate field (e.g. constant): no contour
+            pass
+    ax.set_xscale("log" if xlog else "linear")
+    ax.set_yscale("log" if ylog else "linear")
+    fig.colorbar(mesh, ax=ax, label=label)
+    return mesh
+
+
+def _save(fig, path):
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=130)
+        plt.close(fig)
+    return fig
+
+
+def plot_pmax(ds: xr.Dataset, path: str | Path | None = None):
+    """P_max (mW) over payload mass M (g) x damping c (N s/m), as paper 000 Fig 7.
+
+    Blank cells: no frequency of that payload finished with status 0. The largest P_max is
+    marked with a star.
+    """
+    pmax, note = _over_phase(ds["P_max"])
+    z = 1e3 * pmax.transpose("c", "M").values
+    m_g, c = 1e3 * ds["M"].values, ds["c"].values
+    fig, ax = plt.subplots(figsize=(6.4, 5.0))
+    _mc_mesh(ax, m_g, c, z, r"$P_{max}$ (mW)", fig)
+    if np.isfinite(z).any():
+        j, i = np.unravel_index(np.nanargmax(z), z.shape)
+        ax.plot(m_g[i], c[j], "w*", ms=12, mec="k",
+                label=f"{np.nanmax(z):.2f} mW at M = {m_g[i]:.3g} g, c = {c[j]:.3g} N s/m")
+        ax.legend(loc="upper left", fontsize=7)
+    ax.set_xlabel("payload mass M (g)")
+    ax.set_ylabel("payload damping c (N s/m)")
+    ax.set_title(f"{_map_title(ds)}{note}", fontsize=9)
+    return _save(fig, path)
+
+
+def plot_pout_fc(ds: xr.Dataset, path: str | Path | None = None, mass: float | None = None):
+    """P_out (mW) over frequency f x damping c at the M nearest ``mass`` (kg), as Fig 9.
+
+    ``mass=None``: the M of the largest P_max. Cells with status != 0 are blank; white dots
+    mark f_at_P_max for each c.
+    """
+    if mass is None:
+        pm, _ = _over_phase(ds["P_max"])
+        vals = np.nan_to_num(pm.transpose("M", "c").values, nan=-np.inf)
+        i = int(np.unravel_index(np.argmax(vals), vals.shape)[0])
+    else:
+        if not np.isfinite(mass):
+            raise ValueError(f"--mass must be finite, got {mass!r}")
+        i = int(np.argmin(np.abs(ds["M"].values - mass)))
+    sel = ds.isel(M=i)
+    pout, note = _over_phase(sel["P_out"].where(sel["status"] == 0))
+    z = 1e3 * pout.transpose("c", "f").values
+    f, c = ds["f"].values, ds["c"].values
+    fig, ax = plt.subplots(figsize=(6.4, 5.0))
+    _mc_mesh(ax, f, c, z, r"$P_{out}$ (mW)", fig, contours=True)
+    ax.set_xscale("linear")
+    if "phase" not in sel["f_at_P_max"].dims:
+        ax.plot(sel["f_at_P_max"].values, c, "w.", ms=5, label=r"$f$ at $P_{max}$")
+        ax.legend(loc="upper right", fontsize=7)
+    ax.set_xlabel("frequency f (Hz)")
+    ax.set_ylabel("payload damping c (N s/m)")
+    ax.set_title(f"{_map_title(ds)}, M = {1e3 * float(ds['M'][i]):.3g} g{note}", fontsize=9)
+    return _save(fig, path)
+
+
+def plot_pmax_ratio(ds: xr.Dataset, other: xr.Dataset, path: str | Path | None = None):
+    """Ratio of two maps' P_max over M x c (``ds`` / ``other``), as paper 000 Fig 10.
+
+    The maps must share their M and c axes. The colour scale is logarithmic and centred on
+    1 (the contour ``ratio = 1`` is drawn in black).
+    """
+    for k in ("M", "c"):
+        if ds[k].size != other[k].size or not np.allclose(ds[k].values, other[k].values,
+                                                          rtol=1e-9, atol=0):
+            raise ValueError(f"--other: the maps have different {k} axes; a ratio needs the "
+                             "same payload grid")
+    a, note = _over_phase(ds["P_max"])
+    b, _ = _over_phase(other["P_max"])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = (a / b.assign_coords(M=a["M"], c=a["c"])).transpose("c", "M").values
+    r = np.where(np.isfinite(r) & (r > 0), r, np.nan)
+    m_g, c = 1e3 * ds["M"].values, ds["c"].values
+    fig, ax = plt.subplots(figsize=(6.4, 5.0))
+    norm = None
+    if np.isfinite(r).any():
+        span = max(float(np.nanmax(np.abs(np.log10(r)))), 1e-3)
+        norm = matplotlib.colors.LogNorm(10 ** -span, 10 ** span)
+    _mc_mesh(ax, m_g, c, r, r"$P_{max}$ ratio", fig, norm=norm, cmap="RdBu_r", contours=False)
+    if min(r.shape) >= 2 and np.nanmin(r) < 1 < np.nanmax(r):
+        ax.contour(m_g, c, np.ma.masked_invalid(r), levels=[1.0], colors="k", linewidths=1.0)
+    ax.set_xlabel("payload mass M (g)")
+    ax.set_ylabel("payload damping c (N s/m)")
+    da, db = ds.attrs.get("drive", "?"), other.attrs.get("drive", "?")
+    ax.set_title(f"P_max ratio: drive {da} / drive {db} ({ds.attrs.get('model', '')}){note}",
+                 fontsize=9)
+    return _save(fig, path)
