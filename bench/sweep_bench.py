@@ -16,6 +16,7 @@ Ends with one line: RESULT key=value ...
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 from pathlib import Path
@@ -29,7 +30,8 @@ import jax  # noqa: E402
 
 import jaxdea  # noqa: E402
 import scipy_reference  # noqa: E402
-from jaxdea.sweep import _run, default_lanes  # noqa: E402
+from jaxdea.protocol import run_protocol  # noqa: E402
+from jaxdea.sweep import default_lanes  # noqa: E402
 
 
 def main() -> None:
@@ -46,16 +48,15 @@ def main() -> None:
     loads = jaxdea.make_loadings(model, 2e-3, 0.1, freq, "A")
     lanes = args.lanes or default_lanes(freq.size)
 
-    def run():
-        t0 = time.perf_counter()
-        out = _run(model.actuator, loads, cycles=cycles, average=5, control=control,
-                   lanes=lanes)
-        jax.block_until_ready(out.P_out)
-        return out, time.perf_counter() - t0
-
-    _, first_s = run()  # compile + run
-    res, jax_s = run()  # cached executable
-    compile_s = max(first_s - jax_s, 0.0)
+    fn = jax.jit(functools.partial(run_protocol, cycles=cycles, average=5, control=control,
+                                   lanes=lanes))
+    t0 = time.perf_counter()
+    compiled = fn.lower(model.actuator, loads).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = compiled(model.actuator, loads)
+    jax.block_until_ready(res.P_out)
+    jax_s = time.perf_counter() - t0
     steps = np.asarray(res.steps)
     p_out = np.asarray(res.P_out)
     print(f"jaxdea: {freq.size} trajectories x {cycles} cycles in {jax_s:.2f} s "

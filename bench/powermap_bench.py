@@ -1,0 +1,90 @@
+"""Reduced DCDEA-LS power map with jaxdea vs scipy LSODA on sampled cells of it.
+
+Map: 8 x 8 payloads (M 0.1-10 g, c 0.1-10 N s/m, log-spaced) x 64 frequencies spread over
+1-200 Hz, membrane A driven, paper protocol (100 cycles from rest, mean of the last 5).
+Baseline: the independent scipy transcription (tests/scipy_reference.py, LSODA rtol 1e-8)
+on cells sampled at stratum centres of the map's frequency axis (random M, c), timed in the
+same process. Prints trajectories/s for both, the ratio, peak memory (RSS) and the projected
+time of the full 50 x 50 x 996 map on this machine (scaled by the simulated time per cell,
+which is what the cost follows).
+
+    python bench/powermap_bench.py [--quick]
+
+Ends with one line: RESULT key=value ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+import jaxdea  # noqa: E402
+import scipy_reference  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="4 x 4 x 16, 10 cycles (smoke)")
+    ap.add_argument("--samples", type=int, default=8)
+    args = ap.parse_args()
+    n_pay, n_f, cycles = (4, 16, 10) if args.quick else (8, 64, 100)
+    model = jaxdea.load_config(ROOT / "configs" / "dcdea_ls.toml")
+    mass = np.logspace(-4, -2, n_pay)
+    damping = np.logspace(-1, 1, n_pay)
+    freq = np.round(np.linspace(1.0, 200.0, n_f), 6)
+    kw = dict(mass=mass, damping=damping, freq=freq, drive="A", cycles=cycles, average=5,
+              progress=False)
+    # compile on a one-chunk-shaped problem first so the timing below is run time only
+    t0 = time.perf_counter()
+    jaxdea.powermap(model, **{**kw, "mass": mass[:1], "damping": damping[:1]})
+    warm_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    ds = jaxdea.powermap(model, **kw)
+    jax_s = time.perf_counter() - t0
+    n_cells = ds.P_out.size
+    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    ok = int((ds.status.values == 0).sum())
+    print(f"jaxdea: {n_cells} cells x {cycles} cycles in {jax_s:.1f} s "
+          f"({n_cells / jax_s:.1f} trajectories/s), warm-up incl. compile {warm_s:.1f} s, "
+          f"status ok {ok}/{n_cells}, peak RSS {rss_mb:.0f} MB")
+
+    rng = np.random.default_rng(0)
+    idx_f = ((np.arange(args.samples) + 0.5) * n_f / args.samples).astype(int)
+    times, errs = [], []
+    for k in idx_f:
+        i, j = rng.integers(n_pay), rng.integers(n_pay)
+        t0 = time.perf_counter()
+        ref = scipy_reference.reference_metrics("dcdea_ls", float(mass[i]), float(damping[j]),
+                                                float(freq[k]), cycles=cycles, average=5,
+                                                rtol=1e-8)
+        times.append(time.perf_counter() - t0)
+        cell = ds.isel(M=i, c=j, f=k)
+        err = max(abs(float(cell.P_out) / ref["P_out"] - 1), abs(float(cell.P_in) / ref["P_in"] - 1))
+        errs.append(err)
+        print(f"lsoda: M {mass[i] * 1e3:6.3f} g, c {damping[j]:6.3f} N s/m, f {freq[k]:6.1f} Hz: "
+              f"{times[-1]:.2f} s, max rel err P_out/P_in {err:.1e}", flush=True)
+    lsoda_tps = 1.0 / float(np.mean(times))
+    jax_tps = n_cells / jax_s
+    # cost per cell follows simulated time (cycles / f); scale to the paper's full map
+    full_f = 1.0 + 0.2 * np.arange(996)
+    scale = (2500 * np.sum(100 / full_f)) / (n_pay * n_pay * np.sum(cycles / freq))
+    full_h = jax_s * scale / 3600
+    print(f"ratio (trajectories/s jaxdea / LSODA): {jax_tps / lsoda_tps:.0f}x; "
+          f"projected full 50 x 50 x 996 map: {full_h:.1f} h here "
+          f"(LSODA one core: {2500 * 996 / lsoda_tps / 86400:.0f} days)")
+    print(f"RESULT jaxdea_traj_per_s={jax_tps:.2f} lsoda_traj_per_s={lsoda_tps:.3f} "
+          f"ratio={jax_tps / lsoda_tps:.1f} cells={n_cells} cycles={cycles} jaxdea_s={jax_s:.1f} "
+          f"peak_rss_mb={rss_mb:.0f} projected_full_map_h={full_h:.2f} "
+          f"max_rel_err={max(errs):.2e}")
+
+
+if __name__ == "__main__":
+    main()
