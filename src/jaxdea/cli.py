@@ -30,6 +30,19 @@ def parse_range(text: str, name: str = "--freq") -> np.ndarray:
     return np.round(lo + step * np.arange(n), 12)
 
 
+def _min_max_count(parts: list[str], text: str, name: str) -> tuple[float, float, int]:
+    """Finite ``MIN``, ``MAX`` and a count ``N >= 1`` from ``MIN:MAX:N`` pieces."""
+    try:
+        lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
+    except ValueError:
+        raise ValueError(f"{name} must be MIN:MAX:N with N an integer, got {text!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"{name} values must be finite, got {text!r}")
+    if n < 1:
+        raise ValueError(f"{name} is empty: N = {n} must be >= 1")
+    return lo, hi, n
+
+
 def parse_points(text: str, name: str) -> np.ndarray:
     """``MIN:MAX:N[:log|:lin]`` -> ``N`` points from MIN to MAX inclusive (default log)."""
     parts = text.split(":")
@@ -38,15 +51,7 @@ def parse_points(text: str, name: str) -> np.ndarray:
     scale = parts[3] if len(parts) == 4 else "log"
     if scale not in ("log", "lin"):
         raise ValueError(f"{name} spacing must be log or lin, got {scale!r}")
-    try:
-        lo, hi = float(parts[0]), float(parts[1])
-        n = int(parts[2])
-    except ValueError:
-        raise ValueError(f"{name} must be MIN:MAX:N with N an integer, got {text!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError(f"{name} values must be finite, got {text!r}")
-    if n < 1:
-        raise ValueError(f"{name} is empty: N = {n} must be >= 1")
+    lo, hi, n = _min_max_count(parts[:3], text, name)
     if hi < lo:
         raise ValueError(f"{name} is inverted: MAX = {hi:g} < MIN = {lo:g}")
     if n == 1 and hi != lo:
@@ -66,14 +71,7 @@ def parse_phases(text: str, name: str = "--phase") -> np.ndarray:
     parts = text.split(":")
     if len(parts) != 3:
         raise ValueError(f"{name} must be MIN:MAX:N, got {text!r}")
-    try:
-        lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
-    except ValueError:
-        raise ValueError(f"{name} must be MIN:MAX:N with N an integer, got {text!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError(f"{name} values must be finite, got {text!r}")
-    if n < 1:
-        raise ValueError(f"{name} is empty: N = {n} must be >= 1")
+    lo, hi, n = _min_max_count(parts, text, name)
     if hi <= lo:
         raise ValueError(f"{name} is empty or inverted: MAX = {hi:g} <= MIN = {lo:g}")
     return lo + (hi - lo) * np.arange(n) / n
