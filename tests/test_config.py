@@ -49,10 +49,10 @@ def _del(cfg: dict, path: str):
 @pytest.mark.parametrize(
     "path, value, expected",
     [
-        ("actuator.disk_mass", -1e-3, r"actuator\.disk_mass = -0\.001 .*\(0, inf\] kg"),
+        ("actuator.disk_mass", -1e-3, r"actuator\.disk_mass = -0\.001 .*\(0, inf\) kg"),
         ("membrane.outer_radius", 7.0e-3, r"membrane\.outer_radius .* greater than .*inner_radius"),
         ("membrane.outer_radius", 7.5e-3, r"membrane\.outer_radius .* greater than .*inner_radius"),
-        ("membrane.dielectric.J_A", 0.0, r"membrane\.dielectric\.J_A = 0\.0 .*\(0, inf\]"),
+        ("membrane.dielectric.J_A", 0.0, r"membrane\.dielectric\.J_A = 0\.0 .*\(0, inf\)"),
         ("membrane.electrode.J_B", -3.0, r"membrane\.electrode\.J_B = -3\.0"),
         ("membrane.dielectric.tau", 0.0, r"membrane\.dielectric\.tau"),
         ("membrane.prestretch", 0.9, r"membrane\.prestretch = 0\.9 .*\[1, 10\]"),

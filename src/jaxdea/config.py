@@ -37,7 +37,7 @@ class Field:
 
     def describe(self) -> str:
         left = "(" if self.lo_open else "["
-        right = ")" if self.hi_open else "]"
+        right = ")" if self.hi_open or math.isinf(self.hi) else "]"
         unit = f" {self.unit}" if self.unit else ""
         return f"{left}{self.lo:g}, {self.hi:g}{right}{unit}"
 
@@ -118,7 +118,8 @@ def _section(table: dict, name: str, fields: dict[str, Field]) -> dict[str, Any]
         )
     missing = [k for k in fields if k not in table]
     if missing:
-        raise ConfigError(f"missing key(s) in [{name}]: {', '.join(missing)}")
+        wanted = ", ".join(f"{k} (allowed range {fields[k].describe()})" for k in missing)
+        raise ConfigError(f"missing key(s) in [{name}]: {wanted}")
     return {k: jnp.asarray(f.check(f"{name}.{k}", table[k]), dtype=jnp.float64)
             for k, f in fields.items()}
 
