@@ -77,21 +77,24 @@ class GentMaxwell(eqx.Module):
         s1, s2 = self.branch_stresses(l1, xi)
         return s1 - 0.5 * s2
 
-    def dashpot_rate(self, l1: ArrayLike, xi: ArrayLike) -> Array:
-        """``d xi / dt = xi (s_1 - s_2/2) / (3 eta)``, ``eta = mu_B tau`` (eq 14)."""
-        return xi * self.dashpot_driving_stress(l1, xi) / (3.0 * self.mu_B * self.tau)
+    def _rate(self, xi: ArrayLike, s1: Array, s2: Array) -> Array:
+        """Eq 14 from the branch stresses: ``xi (s_1 - s_2/2) / (3 eta)``, ``eta = mu_B tau``."""
+        return xi * (s1 - 0.5 * s2) / (3.0 * self.mu_B * self.tau)
 
-    def stress(self, l1: ArrayLike, l2: ArrayLike, xi: ArrayLike) -> Array:
-        """Total mechanical stress: equilibrium spring + Maxwell branch (eq 10 / 12 less E)."""
-        return self.equilibrium_stress(l1, l2) + self.viscous_stress(l1, xi)
+    def dashpot_rate(self, l1: ArrayLike, xi: ArrayLike) -> Array:
+        """``d xi / dt`` of the dashpot (eq 14)."""
+        return self._rate(xi, *self.branch_stresses(l1, xi))
 
     def stress_and_rate(self, l1: ArrayLike, l2: ArrayLike, xi: ArrayLike) -> tuple[Array, Array]:
-        """``(stress(l1, l2, xi), dashpot_rate(l1, xi))`` sharing the branch evaluation
-        (the hot path of every simulation)."""
+        """Total mechanical stress (equilibrium spring + Maxwell branch; eq 10 / 12 less the
+        electrostatic term) and ``dashpot_rate``, sharing one branch evaluation (the hot path
+        of every simulation)."""
         s1, s2 = self.branch_stresses(l1, xi)
-        rate = xi * (s1 - 0.5 * s2) / (3.0 * self.mu_B * self.tau)
-        return self.equilibrium_stress(l1, l2) + s1, rate
+        return self.equilibrium_stress(l1, l2) + s1, self._rate(xi, s1, s2)
 
+    def stress(self, l1: ArrayLike, l2: ArrayLike, xi: ArrayLike) -> Array:
+        """Total mechanical stress (first output of :meth:`stress_and_rate`)."""
+        return self.stress_and_rate(l1, l2, xi)[0]
 
 def electrostatic_stress(eps: ArrayLike, field: ArrayLike) -> Array:
     """Maxwell stress of the electric field, ``-eps E^2`` (paper 000 eq 10, third term)."""

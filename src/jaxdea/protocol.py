@@ -29,6 +29,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from .actuators.base import ConeActuator, ConeState, Loading
+from .electrical import charge_rate
 from .solver import LawsonRK4, SemilinearTerm
 
 #: Meaning of the ``status`` values a cell can get (0 = ok).
@@ -81,11 +82,17 @@ def cycle_nodes(loading: Loading) -> Array:
     return jnp.sort(jnp.concatenate([e, jnp.ones(1)]))
 
 
-def _hermite(x0, v0, x1, v1, h):
-    """Coefficients ``(a, b)`` of the cubic ``x0 + v0 s + a s^2 + b s^3`` matching x, x' at
-    ``s = 0`` and ``s = h``, and the (clipped, sorted) roots in [0, h] of its derivative."""
+def _hermite_coefficients(x0, v0, x1, v1, h):
+    """``(a, b)`` of the cubic ``x0 + v0 s + a s^2 + b s^3`` matching x, x' at 0 and h."""
     a = (3.0 * (x1 - x0) / h - 2.0 * v0 - v1) / h
     b = (v0 + v1 - 2.0 * (x1 - x0) / h) / (h * h)
+    return a, b
+
+
+def _hermite(x0, v0, x1, v1, h):
+    """Hermite coefficients ``(a, b)`` and the (clipped, sorted) roots in [0, h] of the cubic's
+    derivative."""
+    a, b = _hermite_coefficients(x0, v0, x1, v1, h)
     qa, qb, qc = 3.0 * b, 2.0 * a, v0  # x'(s) = qc + qb s + qa s^2
     sq = jnp.sqrt(jnp.maximum(qb * qb - 4.0 * qa * qc, 0.0))
     quad = jnp.abs(qa) * h > 1e-12 * (jnp.abs(qb) + jnp.abs(qc) / h + 1e-300)
@@ -123,11 +130,8 @@ def returned_charge(q0, i0, q1, i1, h, kappa, q_inf):
     """
     z0 = q0 - q_inf
     decay_h = jnp.exp(-kappa * h)
-    r1 = q1 - q_inf - z0 * decay_h
     dr0 = i0 + kappa * z0
-    dr1 = i1 + kappa * z0 * decay_h
-    a = (3.0 * r1 / h - 2.0 * dr0 - dr1) / h
-    b = (dr0 + dr1 - 2.0 * r1 / h) / (h * h)
+    a, b = _hermite_coefficients(0.0, dr0, q1 - q_inf - z0 * decay_h, i1 + kappa * z0 * decay_h, h)
     s = 0.5 * h * (_GL_X + 1.0)  # nodes on [0, h]
     s = s.reshape(s.shape + (1,) * jnp.ndim(q0))
     i = -kappa * z0 * jnp.exp(-kappa * s) + dr0 + s * (2.0 * a + 3.0 * b * s)
@@ -284,12 +288,12 @@ def run_protocol(
         start = wrap & (cycle == cycles - average)
         window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), y, lane.window)
         # charge pushed back into the source during the step (Phi is constant within a step)
-        tin = t0 + 0.5 * h
-        i0 = model.source_currents(tin, lane.y, lane.loading)
-        i1 = model.source_currents(tin, y1, lane.loading)
-        phi = lane.loading.drive(tin)
-        cap0 = model.membrane.capacitance(model.deflections(lane.y.q))
-        kappa0 = 1.0 / (2.0 * model.membrane.electrode_resistance * cap0)
+        mem = model.membrane
+        phi = lane.loading.drive(t0 + 0.5 * h)
+        cap0 = mem.capacitance(model.deflections(lane.y.q))
+        i0 = charge_rate(phi, lane.y.charge, cap0, mem.electrode_resistance)
+        i1 = mem.current(model.deflections(y1.q), y1.charge, phi)
+        kappa0 = 1.0 / (2.0 * mem.electrode_resistance * cap0)
         back = phi * returned_charge(lane.y.charge, i0, y1.charge, i1, h, kappa0, cap0 * phi)
         back = jnp.where(in_window, lane.back + back, lane.back)
 

@@ -144,11 +144,6 @@ class ConeActuator(eqx.Module):
             two_rs=2.0 * self.membrane.electrode_resistance,
         )
 
-    def source_currents(self, t, y: ConeState, args: Loading) -> Array:
-        """Current drawn from each membrane's source, A (eq 3)."""
-        d = self.deflections(y.q)
-        return self.membrane.current(d, y.charge, args.drive(t))
-
     def observables(self, t, y: ConeState, args: Loading) -> dict[str, Array]:
         """Instantaneous quantities for plots and checks (SI units)."""
         phi = args.drive(t)
