@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import importlib
+
 import equinox as eqx
 import jax.numpy as jnp
 
@@ -98,6 +100,13 @@ ACTUATOR_CLASSES: dict[str, type[ConeActuator]] = {
 }
 
 
+#: Model families outside the square-wave cones (rotary, mass cone, planar ...): ``model = kind``
+#: -> ``"module:function"`` taking the parsed config dict and returning the validated model.
+#: Imported lazily so each family stays in its own module; each validates with :class:`Field`
+#: and raises :class:`ConfigError` like the cone loader below.
+EXTERNAL_LOADERS: dict[str, str] = {}
+
+
 class Model(eqx.Module):
     """A configured cone DEA: the actuator and its default drive (square-wave voltage, duty)."""
 
@@ -137,7 +146,11 @@ def _subtables(table: dict, name: str, sub: tuple[str, ...]) -> tuple[dict, dict
 
 
 def model_from_dict(cfg: dict[str, Any]) -> Model:
-    """Build and validate a :class:`Model` from a parsed config dictionary."""
+    """Build and validate a model from a parsed config dictionary (``model`` picks the family)."""
+    kind = cfg.get("model")
+    if isinstance(kind, str) and kind in EXTERNAL_LOADERS:
+        module, func = EXTERNAL_LOADERS[kind].split(":")
+        return getattr(importlib.import_module(module), func)(cfg)
     allowed = {"model", "membrane", "actuator", "drive"}
     unknown = sorted(set(cfg) - allowed)
     if unknown:
@@ -148,7 +161,8 @@ def model_from_dict(cfg: dict[str, Any]) -> Model:
             raise ConfigError(f"missing top-level key: {key}")
     kind = cfg["model"]
     if kind not in ACTUATOR_CLASSES:
-        raise ConfigError(f"model = {kind!r} is not one of {', '.join(ACTUATOR_CLASSES)}")
+        kinds = [*ACTUATOR_CLASSES, *EXTERNAL_LOADERS]
+        raise ConfigError(f"model = {kind!r} is not one of {', '.join(kinds)}")
 
     flat, nested = _subtables(cfg["membrane"], "membrane", ("dielectric", "electrode"))
     geo = _section(flat, "membrane", MEMBRANE_FIELDS)
