@@ -5,9 +5,13 @@ millions of independent cells. The cells are flattened in C order over (M, c, f,
 run in chunks of one fixed size through :func:`jaxdea.protocol.run_protocol` (one compiled
 executable for every chunk: the last chunk is padded by repeating its last cell, and the
 padding is dropped). Chunks only bound memory and give resumable units of work; within a chunk
-the cells are split evenly across all visible JAX devices (``jax.shard_map`` over a 1-D mesh;
-each device runs its own lane pool on its slice). The per-cell arithmetic does not depend on
-which lane or device runs a cell, so a map equals the same cells run by :func:`jaxdea.sweep`.
+the cells are split evenly across all visible JAX devices (:mod:`jaxdea.sharding`; each device
+runs its own lane pool on its slice). The per-cell arithmetic does not depend on which lane or
+device runs a cell, so a map equals the same cells run by :func:`jaxdea.sweep`.
+
+Protocols: ``paper`` (N cycles from rest per cell), ``continuation`` (each frequency starts
+from the previous one's final state: a chain over f per payload and phase, so chunks and
+device slices hold whole chains), ``periodic`` (periodic steady state, :mod:`jaxdea.steady`).
 
 With ``store`` every finished chunk goes to disk at once (see :mod:`jaxdea.mapstore`), so a
 killed run restarted with ``resume=True`` recomputes only the missing chunks and writes a store
@@ -24,12 +28,10 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import xarray as xr
-from jax.sharding import Mesh, PartitionSpec
 from tqdm.auto import tqdm
 
 from .actuators.base import Loading
@@ -37,16 +39,12 @@ from .config import ConfigError, Model
 from .mapstore import Parts, check_store_path, jaxdea_version, write_store
 from .payloads import LinearViscous
 from .protocol import STATUS, StepControl, run_protocol
+from .sharding import cell_sharded
 from .signals import SquareWave
-from .sweep import (DRIVES, VARIABLES, SweepError, _finite_array, check_protocol, default_lanes,
-                    drive_pattern, run_cells, to_dataset)
-
-PROTOCOLS = ("paper", "continuation", "periodic")
-#: Protocols accepted by the CLI but not implemented yet.
-PLANNED = {
-    "continuation": "frequency continuation (each f starts from the previous f's final state)",
-    "periodic": "periodic steady state by shooting on the one-period map",
-}
+from .steady import periodic_cells
+from .sweep import (DIRECTIONS, DRIVES, PROTOCOLS, VARIABLES, SweepError, _finite_array,
+                    chain_successors, check_protocol, default_lanes, drive_pattern, run_cells,
+                    to_dataset)
 #: Default chunk size per device: large enough that the lane pool stays busy and the slowest
 #: (lowest-frequency) cell is not the critical path, small enough for a fine progress bar.
 CHUNK_PER_DEVICE = 1024
@@ -142,43 +140,33 @@ class _Grid:
         )
 
 
-_SHARDED: dict = {}
+def _engine(actuator, loadings, successor, *, cycles, average, control, lanes):
+    """The lane engine on one device's cells (``successor``: local indices)."""
+    res = run_protocol(actuator, loadings, cycles=cycles, average=average, control=control,
+                       lanes=lanes, successor=successor)
+    return {k: getattr(res, k) for k in VARIABLES}
 
 
-def _sharded_runner(devices: tuple):
-    """A jitted runner splitting the cells of a chunk evenly over ``devices`` (cached)."""
-    key = tuple(d.id for d in devices)
-    if key not in _SHARDED:
-        mesh = Mesh(np.array(devices), ("cells",))
-
-        def run(actuator, loadings, *, cycles, average, control, lanes):
-            dyn, static = eqx.partition(actuator, eqx.is_array)
-
-            def body(dyn, part):
-                res = run_protocol(eqx.combine(dyn, static), part, cycles=cycles,
-                                   average=average, control=control, lanes=lanes)
-                return {k: getattr(res, k) for k in VARIABLES}
-
-            # check_vma off: run_protocol's while_loop carry starts from replicated values (the
-            # model's rest state) that become device-varying, which the vma check rejects
-            cells = PartitionSpec("cells")
-            return jax.shard_map(body, mesh=mesh, in_specs=(PartitionSpec(), cells),
-                                 out_specs=cells, check_vma=False)(dyn, loadings)
-
-        _SHARDED[key] = eqx.filter_jit(run)
-    return _SHARDED[key]
-
-
-def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, cycles, average,
-               control) -> dict[str, np.ndarray]:
+def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, successor, cycles,
+               average, control, tol) -> dict[str, np.ndarray]:
+    """One chunk; ``successor`` (continuation) is the pattern of one device's slice."""
     n = loadings.drive.frequency.shape[0]
-    if len(devices) == 1:  # the same compiled call as jaxdea.sweep of n cells
-        res = run_cells(model, loadings, cycles=cycles, average=average, control=control)
+    lanes = default_lanes(n // len(devices))
+    if protocol == "periodic":
+        res = periodic_cells(model.actuator, loadings, tol=tol, control=control, lanes=lanes,
+                             devices=devices)
+        out = {k: getattr(res, k) for k in VARIABLES}
+    elif len(devices) == 1:  # the same compiled call as jaxdea.sweep of n cells
+        res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
+                        protocol=protocol, successor=successor)
         out = {k: getattr(res, k) for k in VARIABLES}
     else:
-        run = _sharded_runner(devices)
-        out = run(model.actuator, loadings, cycles=cycles, average=average, control=control,
-                  lanes=default_lanes(n // len(devices)))
+        local = n // len(devices)
+        succ = np.tile(successor if successor is not None else np.full(local, local),
+                       len(devices))
+        out = cell_sharded(_engine, devices)(
+            model.actuator, loadings, jnp.asarray(succ, jnp.int32), cycles=cycles,
+            average=average, control=control, lanes=lanes)
     return {k: np.asarray(v) for k, v in out.items()}
 
 
@@ -199,6 +187,7 @@ def _reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
 
 def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
              protocol: str = "paper", cycles: int = 100, average: int = 5,
+             direction: str = "forward", tol: float = 1e-6,
              control: StepControl = StepControl(), chunk_cells: int | None = None,
              store: str | os.PathLike | None = None, resume: bool = False,
              progress: bool = True) -> xr.Dataset:
@@ -207,14 +196,19 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     ``mass`` (kg, >= 0), ``damping`` (N s/m, >= 0), ``freq`` (Hz, > 0): 1-D increasing axes.
     ``phase`` (rad, in [0, 2 pi)): optional axis of B's delay, only with ``drive="both"``.
     ``protocol="paper"``: ``cycles`` periods from rest per cell, mean of the last ``average``.
-    ``chunk_cells``: cells per compiled call (rounded up to a multiple of the device count;
-    default 1024 per device). ``store`` (``.zarr`` or ``.nc``): write each finished chunk to
+    ``"continuation"``: the same, but each frequency starts from the previous frequency's
+    final state (``direction="forward"``: up the f axis, as paper 000 swept; ``"backward"``:
+    down it; compare both to expose jumps). ``"periodic"``: periodic steady state per cell
+    to tolerance ``tol`` (:mod:`jaxdea.steady`; ``cycles``/``average`` unused).
+    ``chunk_cells``: cells per compiled call (rounded up to a multiple of the device count,
+    and for continuation to whole frequency chains per device; default 1024 per device). ``store`` (``.zarr`` or ``.nc``): write each finished chunk to
     ``<store>.parts`` and the final Dataset to ``store``; ``resume=True`` reuses the finished
     chunks of an interrupted run with identical settings. ``progress``: tqdm bar over chunks.
 
     Returns a Dataset with dims (M, c, f[, phase]) and variables P_out, P_in, P_in_signed,
-    efficiency, amplitude, v_rms, status (0 = ok, see :data:`jaxdea.STATUS`), steps, plus P_max
-    and f_at_P_max (reduced over f). ``attrs["chunks_computed"]`` and
+    efficiency, amplitude, v_rms, status (0 = ok, see :data:`jaxdea.STATUS`), steps, residual
+    (periodicity residual of the last cycle), cycles_run, plus P_max and f_at_P_max (reduced
+    over f). ``attrs["chunks_computed"]`` and
     ``attrs["chunks_reused"]`` count the work done by this call (not written to the store).
     All arguments are checked before any computation (:class:`SweepError` naming the argument).
     """
@@ -225,6 +219,10 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
         raise SweepError(f"protocol = {protocol!r} must be one of {', '.join(PROTOCOLS)}")
     if drive not in DRIVES:
         raise SweepError(f"drive = {drive!r} must be one of {', '.join(DRIVES)}")
+    if direction not in DIRECTIONS:
+        raise SweepError(f"direction = {direction!r} must be one of {', '.join(DIRECTIONS)}")
+    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and 0 < tol < 1):
+        raise SweepError(f"tol = {tol!r} is outside the allowed range (0, 1)")
     axes = {"M": _axis("mass", mass, nonnegative=True),
             "c": _axis("damping", damping, nonnegative=True),
             "f": _axis("freq", freq, positive=True)}
@@ -249,9 +247,6 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
         raise SweepError("resume=True needs a store (the path of the interrupted run's output)")
     shape = tuple(a.size for a in axes.values())
     _check_size(shape, tuple(axes), store)
-    if protocol in PLANNED:
-        raise NotImplementedError(f"protocol {protocol!r} ({PLANNED[protocol]}) is not "
-                                  "implemented yet; use protocol='paper'")
 
     # ---- chunking -----------------------------------------------------------------------
     devices = tuple(jax.devices())
@@ -259,12 +254,21 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     chunk = int(chunk_cells or CHUNK_PER_DEVICE * len(devices))
     chunk = min(chunk, -(-n_cells // len(devices)) * len(devices))  # no more than the grid
     chunk = -(-chunk // len(devices)) * len(devices)  # a multiple of the device count
+    successor = None
+    if protocol == "continuation":  # whole chains (all f of a payload and phase) per device
+        n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
+        block = n_f * n_rest * len(devices)
+        chunk = -(-chunk // block) * block
+        successor = chain_successors(n_f, n_rest, direction, chunk // (n_f * n_rest)
+                                     // len(devices))
     n_chunks = -(-n_cells // chunk)
     grid = _Grid(axes=axes, shape=shape,
                  amplitude=np.stack([on * float(model.voltage) for on, _ in patterns]),
                  phases=np.stack([ph for _, ph in patterns]), duty=float(model.duty))
     attrs = dict(model=model.name, drive=drive, protocol=protocol, cycles=int(cycles),
-                 average=int(average), rtol=float(control.rtol), dt_max=float(control.dt_max),
+                 average=int(average),
+                 direction=direction if protocol == "continuation" else None,
+                 tol=float(tol) if protocol == "periodic" else None, rtol=float(control.rtol), dt_max=float(control.dt_max),
                  max_steps=int(control.max_steps), voltage=float(model.voltage),
                  duty=float(model.duty), jaxdea_version=jaxdea_version())
     if drive == "both" and phase is None:
@@ -278,7 +282,8 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
         done = parts.open(resume)
 
     # ---- run ----------------------------------------------------------------------------
-    results = {k: np.empty(n_cells, dtype=np.int32 if k in ("status", "steps") else float)
+    ints = ("status", "steps", "cycles_run")
+    results = {k: np.empty(n_cells, dtype=np.int32 if k in ints else float)
                for k in VARIABLES}
     computed = reused = 0
     bar = tqdm(total=n_chunks - len(done), desc="powermap chunks", unit="chunk",
@@ -293,8 +298,9 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
                 if i in done:  # unreadable part: count it as computed work
                     bar.total += 1
                 idx = np.minimum(np.arange(lo, lo + chunk), hi - 1)  # pad: repeat last cell
-                out = _run_chunk(model, grid.loadings(idx), devices, cycles=int(cycles),
-                                 average=int(average), control=control)
+                out = _run_chunk(model, grid.loadings(idx), devices, protocol=protocol,
+                                 successor=successor, cycles=int(cycles),
+                                 average=int(average), control=control, tol=float(tol))
                 got = {k: v[: hi - lo] for k, v in out.items()}
                 if parts is not None:
                     parts.save(i, got)

@@ -16,6 +16,19 @@ difference of their values at the window ends, so nothing is stored per step. Th
 amplitude over the window is the extremum of the cubic Hermite interpolant of every
 accepted step (position and velocity at both ends).
 
+Beyond "N cycles from rest" the same engine runs the other protocols' building blocks:
+
+- ``initial``: per-cell start states (periodic shooting starts each cell from its iterate);
+- ``successor``: chains of cells; a lane that finishes a cell goes on with its successor from
+  the final state (frequency continuation, paper 000's forward sweep); the queue holds the
+  chain heads only;
+- ``active``: run only these cells (the others are skipped at no cost);
+- ``settle``: stop a cell as soon as its one-period map has converged (residual below
+  ``settle``, after correcting for the observed contraction rate), metrics over its last cycle.
+
+Every cell also reports its periodicity residual: the scaled max-norm of the change of the
+dynamical state over the last cycle (:func:`periodicity_residual`).
+
 Status codes per cell: :data:`STATUS`.
 """
 
@@ -38,6 +51,7 @@ STATUS = {
     1: "Gent lock-up: a stretch reached the limiting-chain limit",
     2: "non-finite state (pull-in / electromechanical instability or overflow)",
     3: "step budget exhausted before the last cycle",
+    4: "not converged: periodic steady state not reached (residual above tolerance)",
 }
 
 
@@ -72,6 +86,8 @@ class CycleMetrics(eqx.Module):
     v_rms: Array  #: RMS payload velocity over the window, m/s
     status: Array  #: 0 = ok, see STATUS
     steps: Array  #: solver steps taken (accepted + rejected)
+    residual: Array  #: periodicity residual over the last cycle (:func:`periodicity_residual`)
+    cycles_run: Array  #: drive cycles integrated for the cell
     final_state: ConeState  #: state at the end of the last cycle
 
 
@@ -139,6 +155,29 @@ def returned_charge(q0, i0, q1, i1, h, kappa, q_inf):
     return jnp.sum(w * jnp.minimum(i, 0.0), axis=0)
 
 
+#: The states that define the dynamics (the rest are energy accumulators).
+DYNAMICAL = ("q", "v", "charge", "xi_m", "xi_el")
+
+
+def periodicity_residual(y1: ConeState, y0: ConeState) -> Array:
+    """Scaled max-norm of ``y1 - y0`` over the dynamical states: ``|dy| / (s + |y|)`` with the
+    absolute scales ``s`` of the step-error norm (1 mm, 0.1 m/s, 1 uC, 1)."""
+    worst = jnp.zeros(())
+    for name in DYNAMICAL:
+        a, b = getattr(y1, name), getattr(y0, name)
+        scale = _SCALES[name][0]
+        r = jnp.abs(a - b) / (scale + jnp.maximum(jnp.abs(a), jnp.abs(b)))
+        worst = jnp.maximum(worst, jnp.max(r))
+    return worst
+
+
+def reset_accumulators(y: ConeState) -> ConeState:
+    """``y`` with the energy integrals set to zero (a new cell starts its own bookkeeping)."""
+    return eqx.tree_at(lambda s: (s.payload_work, s.v2, s.energy_in), y,
+                       (jnp.zeros_like(y.payload_work), jnp.zeros_like(y.v2),
+                        jnp.zeros_like(y.energy_in)))
+
+
 class _Lane(eqx.Module):
     job: Array  # cell index, or n_cells when idle
     y: ConeState
@@ -149,6 +188,10 @@ class _Lane(eqx.Module):
     h: Array  # proposed next step, s
     steps: Array
     window: ConeState  # state at the start of the averaging window
+    prev: ConeState  # state at the start of the current cycle
+    res: Array  # periodicity residual of the last completed cycle
+    ratio: Array  # residual of the last cycle over that of the one before
+    rate: Array  # contraction per cycle: the larger of the last two ratios
     back: Array  # energy returned to each source in the window (<= 0), J
     xmin: Array
     xmax: Array
@@ -156,7 +199,7 @@ class _Lane(eqx.Module):
     done: Array
 
 
-def _window_metrics(lane: _Lane, average: int, cycles: int):
+def _window_metrics(lane: _Lane, average: int, cycles: int, settle):
     w, y = lane.window, lane.y
     span = average / lane.loading.drive.frequency
     p_out = (y.payload_work - w.payload_work) / span
@@ -165,9 +208,13 @@ def _window_metrics(lane: _Lane, average: int, cycles: int):
     p_in = jnp.sum(e_in - lane.back) / span
     eff = jnp.where(p_in > 0, p_out / jnp.where(p_in > 0, p_in, 1.0), 0.0)
     finite = _all_finite(y)
+    ok = 0 if settle is None else jnp.where(_settled(lane.res, lane.rate, settle), 0, 4)
     status = jnp.where(
-        ~finite, 2, jnp.where(lane.lockup, 1, jnp.where(lane.cycle < cycles, 3, 0))
+        ~finite, 2, jnp.where(lane.lockup, 1, jnp.where(lane.cycle < cycles, 3, ok))
     ).astype(jnp.int32)
+    if settle is not None:  # stopped early: not a budget problem
+        status = jnp.where(finite & ~lane.lockup & (status == 3)
+                           & _settled(lane.res, lane.rate, settle), 0, status)
     return dict(
         P_out=p_out,
         P_in=p_in,
@@ -177,7 +224,16 @@ def _window_metrics(lane: _Lane, average: int, cycles: int):
         v_rms=jnp.sqrt(jnp.maximum(y.v2 - w.v2, 0.0) / span),
         status=status,
         steps=lane.steps,
+        residual=lane.res,
+        cycles_run=lane.cycle,
     )
+
+
+def _settled(res, rate, tol):
+    """Converged when the residual, scaled up by the distance still to go at the observed
+    geometric rate (``res * rate / (1 - rate)``), is below ``tol``."""
+    rate = jnp.clip(rate, 0.0, 0.999)
+    return res * jnp.maximum(1.0, rate / (1.0 - rate)) < tol
 
 
 def _all_finite(y: ConeState) -> Array:
@@ -207,6 +263,10 @@ def run_protocol(
     control: StepControl = StepControl(),
     lanes: int | None = None,
     steps_per_round: int = 16,
+    initial: ConeState | None = None,
+    successor: Array | None = None,
+    active: Array | None = None,
+    settle: float | None = None,
 ) -> CycleMetrics:
     """Run ``cycles`` periods from rest for every cell of ``loadings`` (leading axis = cells)
     and average the last ``average`` periods. Jittable; ``model`` is shared by all cells.
@@ -214,11 +274,29 @@ def run_protocol(
     ``lanes``: size of the lane pool (default 32: on a 2-core CPU the per-lane cost dominates
     beyond that, and the longest cell is the critical path); ``steps_per_round``: steps
     between two queue updates.
+
+    ``initial``: start state of every cell (leading axis = cells; default: rest at the static
+    equilibrium). ``successor``: int per cell, the cell that continues from this cell's final
+    state (accumulators reset, drive restarted at t = 0), or ``n_cells`` for none; chain heads
+    start from ``initial``. ``active``: bool per cell; inactive cells are not run and their
+    outputs are zeros. ``settle``: if given, a cell stops at the first cycle end where its
+    periodicity residual (corrected for the observed contraction) is below ``settle``; its
+    metrics are over that last cycle (needs ``average == 1``), and a cell that reaches
+    ``cycles`` without settling gets status 4.
+
+    ``cycles`` and ``average`` may be integer arrays (traced under jit: one compiled engine
+    for every cycle count; their range is then the caller's to check).
     """
-    if not (isinstance(cycles, int) and isinstance(average, int) and 1 <= average <= cycles):
-        raise ValueError(
-            f"need integers 1 <= average <= cycles, got average={average}, cycles={cycles}"
-        )
+    if isinstance(cycles, int) and isinstance(average, int):
+        if not 1 <= average <= cycles:
+            raise ValueError(
+                f"need integers 1 <= average <= cycles, got average={average}, cycles={cycles}"
+            )
+    elif not (hasattr(cycles, "dtype") and hasattr(average, "dtype")):
+        raise ValueError(f"cycles and average must be integers, got {cycles!r}, {average!r}")
+    if settle is not None and average != 1:
+        raise ValueError(f"settle mode averages over the last cycle: need average=1, "
+                         f"got {average}")
     n_cells = jax.tree_util.tree_leaves(loadings)[0].shape[0]
     n_lanes = int(min(n_cells, lanes or 32))
     solver = LawsonRK4()
@@ -226,21 +304,40 @@ def run_protocol(
     y0 = model.initial_state()
     bcast = lambda a: jnp.broadcast_to(a, (n_lanes,) + a.shape)  # noqa: E731
 
-    def fresh(idx: Array) -> _Lane:
-        """Lanes starting cell ``idx`` from rest (``idx >= n_cells``: idle lane)."""
+    succ = (jnp.full(n_cells, n_cells, jnp.int32) if successor is None
+            else jnp.asarray(successor, jnp.int32))
+    is_head = jnp.ones(n_cells, bool).at[succ].set(False, mode="drop")
+    if active is not None:
+        is_head = is_head & jnp.asarray(active, bool)
+    queue = jnp.nonzero(is_head, size=n_cells, fill_value=n_cells)[0]
+    queue = jnp.concatenate([queue, jnp.full(n_lanes, n_cells, queue.dtype)])
+
+    def start_state(idx: Array) -> ConeState:
+        """Start states of cells ``idx`` (one per lane)."""
+        if initial is None:
+            return jax.tree_util.tree_map(bcast, y0)
+        safe = jnp.minimum(idx, n_cells - 1)
+        return reset_accumulators(jax.tree_util.tree_map(lambda a: a[safe], initial))
+
+    def fresh(idx: Array, y: ConeState) -> _Lane:
+        """Lanes starting cell ``idx`` from ``y`` (``idx >= n_cells``: idle lane)."""
         safe = jnp.minimum(idx, n_cells - 1)
         loading = jax.tree_util.tree_map(lambda a: a[safe], loadings)
         period = 1.0 / loading.drive.frequency
         return _Lane(
             job=jnp.where(idx < n_cells, idx, n_cells),
-            y=jax.tree_util.tree_map(bcast, y0),
+            y=y,
             loading=loading,
             nodes=jax.vmap(cycle_nodes)(loading),
             cycle=jnp.zeros(n_lanes, jnp.int32),
             u=jnp.zeros(n_lanes),
             h=jnp.minimum(control.dt_max, period / 200.0),
             steps=jnp.zeros(n_lanes, jnp.int32),
-            window=jax.tree_util.tree_map(bcast, y0),
+            window=y,
+            prev=y,
+            res=jnp.full(n_lanes, jnp.inf),
+            ratio=jnp.ones(n_lanes),
+            rate=jnp.ones(n_lanes),
             back=jnp.zeros((n_lanes, model.n_membranes)),
             xmin=jnp.full(n_lanes, jnp.inf),
             xmax=jnp.full(n_lanes, -jnp.inf),
@@ -248,11 +345,11 @@ def run_protocol(
             done=idx >= n_cells,
         )
 
-    def load(lane: _Lane, idx: Array, mask: Array) -> _Lane:
-        """Give the lanes in ``mask`` cell ``idx``; the others keep their state."""
+    def load(lane: _Lane, idx: Array, y: ConeState, mask: Array) -> _Lane:
+        """Give the lanes in ``mask`` cell ``idx`` starting from ``y``; the others keep theirs."""
         return jax.tree_util.tree_map(
             lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (new.ndim - 1)), new, old),
-            fresh(idx), lane,
+            fresh(idx, y), lane,
         )
 
     def lane_step(lane: _Lane) -> _Lane:
@@ -279,14 +376,29 @@ def run_protocol(
         cycle = lane.cycle + wrap.astype(jnp.int32)
         u = jnp.where(wrap, 0.0, u)
 
+        # periodicity residual at each cycle end, and its contraction per cycle
+        res = periodicity_residual(y, lane.prev)
+        measured = wrap & jnp.isfinite(lane.res)
+        ratio = jnp.where(measured, res / jnp.maximum(lane.res, 1e-300), lane.ratio)
+        rate = jnp.where(measured, jnp.maximum(ratio, lane.ratio), lane.rate)  # last two cycles
+        res = jnp.where(wrap, res, lane.res)
+        prev = jax.tree_util.tree_map(lambda a, b: jnp.where(wrap, a, b), y, lane.prev)
+
         # window bookkeeping: amplitude from the Hermite interpolant of the accepted step
-        in_window = accept & (lane.cycle >= cycles - average)
+        if settle is None:
+            in_window = accept & (lane.cycle >= cycles - average)
+        else:
+            in_window = accept
         i = model.payload_dof
         lo, hi = hermite_extrema(lane.y.q[i], lane.y.v[i], y1.q[i], y1.v[i], h)
         xmin = jnp.where(in_window, jnp.minimum(lane.xmin, lo), lane.xmin)
         xmax = jnp.where(in_window, jnp.maximum(lane.xmax, hi), lane.xmax)
-        start = wrap & (cycle == cycles - average)
-        window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), y, lane.window)
+        if settle is None:
+            start = wrap & (cycle == cycles - average)
+            settled = jnp.zeros_like(wrap)
+        else:  # the window is the cycle just finished; restart it unless the cell is done
+            settled = wrap & (cycle >= 2) & _settled(res, rate, settle)
+            start = wrap & ~settled & (cycle < cycles)  # keep the last cycle at the budget
         # charge pushed back into the source during the step (Phi is constant within a step)
         mem = model.membrane
         phi = lane.loading.drive(t0 + 0.5 * h)
@@ -296,6 +408,11 @@ def run_protocol(
         kappa0 = 1.0 / (2.0 * mem.electrode_resistance * cap0)
         back = phi * returned_charge(lane.y.charge, i0, y1.charge, i1, h, kappa0, cap0 * phi)
         back = jnp.where(in_window, lane.back + back, lane.back)
+        if settle is not None:
+            xmin = jnp.where(start, jnp.inf, xmin)
+            xmax = jnp.where(start, -jnp.inf, xmax)
+            back = jnp.where(start, 0.0, back)
+        window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), y, lane.window)
 
         margin = jnp.min(model.membrane.gent_margin(model.deflections(y.q), y.xi_m, y.xi_el))
         lockup = lane.lockup | (active & ~(margin > 0))
@@ -303,24 +420,27 @@ def run_protocol(
         blown = active & ~ok & (h < 1e-12 * period)  # step size collapsed: non-finite/unstable
         y = jax.tree_util.tree_map(
             lambda a: jnp.where(blown, jnp.nan, a), y)
-        done = lane.done | (cycle >= cycles) | lockup | blown | (steps >= control.max_steps)
+        done = (lane.done | (cycle >= cycles) | lockup | blown | (steps >= control.max_steps)
+                | settled)
         return eqx.tree_at(
-            lambda s: (s.y, s.cycle, s.u, s.h, s.steps, s.window, s.back, s.xmin, s.xmax,
-                       s.lockup, s.done),
-            lane, (y, cycle, u, h_next, steps, window, back, xmin, xmax, lockup, done),
+            lambda s: (s.y, s.cycle, s.u, s.h, s.steps, s.window, s.prev, s.res, s.ratio,
+                       s.rate, s.back, s.xmin, s.xmax, s.lockup, s.done),
+            lane, (y, cycle, u, h_next, steps, window, prev, res, ratio, rate, back, xmin,
+                   xmax, lockup, done),
         )
 
     out = dict(
         P_out=jnp.zeros(n_cells), P_in=jnp.zeros(n_cells), P_in_signed=jnp.zeros(n_cells),
         efficiency=jnp.zeros(n_cells), amplitude=jnp.zeros(n_cells), v_rms=jnp.zeros(n_cells),
         status=jnp.zeros(n_cells, jnp.int32), steps=jnp.zeros(n_cells, jnp.int32),
+        residual=jnp.zeros(n_cells), cycles_run=jnp.zeros(n_cells, jnp.int32),
         final_state=jax.tree_util.tree_map(
             lambda a: jnp.zeros((n_cells,) + a.shape, a.dtype), y0),
     )
 
     def harvest(out, lane: _Lane, finished: Array):
         """Write the finished lanes' results into the outputs (other lanes write nowhere)."""
-        metrics = jax.vmap(lambda ln: _window_metrics(ln, average, cycles))(lane)
+        metrics = jax.vmap(lambda ln: _window_metrics(ln, average, cycles, settle))(lane)
         metrics["final_state"] = lane.y
         target = jnp.where(finished, lane.job, n_cells)  # index n_cells is dropped
         return jax.tree_util.tree_map(
@@ -331,13 +451,30 @@ def run_protocol(
         lane = jax.lax.fori_loop(0, steps_per_round, lambda _, ln: jax.vmap(lane_step)(ln), lane)
         finished = lane.done & (lane.job < n_cells)
         out = harvest(out, lane, finished)
-        new_idx = next_job + jnp.cumsum(finished.astype(jnp.int32)) - 1
-        lane = load(lane, new_idx, finished)
-        return lane, out, next_job + jnp.sum(finished.astype(jnp.int32))
+        # a finished cell's successor goes on from its final state; other lanes take the
+        # next chain head from the queue
+        nxt = succ[jnp.minimum(lane.job, n_cells - 1)]
+        chained = finished & (nxt < n_cells)
+        from_queue = finished & ~chained
+        # a successor of a failed cell (non-finite / locked up) restarts from its own start
+        carry_on = chained & _all_finite_lanes(lane.y) & ~lane.lockup
+        pos = next_job + jnp.cumsum(from_queue.astype(jnp.int32)) - 1
+        head = queue[jnp.minimum(pos, queue.shape[0] - 1)]
+        idx = jnp.where(chained, nxt, head)
+        y_new = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(carry_on.reshape(carry_on.shape + (1,) * (a.ndim - 1)), a, b),
+            reset_accumulators(lane.y), start_state(idx))
+        lane = load(lane, idx, y_new, finished)
+        return lane, out, next_job + jnp.sum(from_queue.astype(jnp.int32))
 
     def busy(carry):
         return jnp.any(~carry[0].done)
 
-    lane0 = fresh(jnp.arange(n_lanes))
+    heads = queue[:n_lanes]
+    lane0 = fresh(heads, start_state(heads))
     _, out, _ = jax.lax.while_loop(busy, round_, (lane0, out, jnp.asarray(n_lanes)))
     return CycleMetrics(**out)
+
+
+def _all_finite_lanes(y: ConeState) -> Array:
+    return jax.vmap(_all_finite)(y)

@@ -10,6 +10,7 @@ import math
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import xarray as xr
@@ -21,6 +22,10 @@ from .protocol import STATUS, CycleMetrics, StepControl, run_protocol
 from .signals import SquareWave
 
 DRIVES = ("A", "B", "both")
+#: Protocols: the papers' N cycles from rest per cell; frequency continuation (each f starts
+#: from the previous f's final state); periodic steady state (settle, then Newton shooting).
+PROTOCOLS = ("paper", "continuation", "periodic")
+DIRECTIONS = ("forward", "backward")
 
 #: Units and descriptions of the per-cell outputs.
 VARIABLES = {
@@ -32,9 +37,19 @@ VARIABLES = {
     "v_rms": ("m/s", "RMS payload velocity over the window"),
     "status": ("1", "; ".join(f"{k} = {v}" for k, v in STATUS.items())),
     "steps": ("1", "solver steps taken (accepted and rejected)"),
+    "residual": ("1", "periodicity residual: scaled max-norm of the state change over the "
+                      "last cycle (0 = exactly periodic)"),
+    "cycles_run": ("1", "drive cycles integrated for the cell (all stages)"),
 }
 
 _run = eqx.filter_jit(run_protocol)
+
+
+@eqx.filter_jit
+def _rest_states(actuator, n: int):
+    """The rest state (static equilibrium) repeated for ``n`` cells (compiled once)."""
+    rest = actuator.initial_state()
+    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), rest)
 
 
 class SweepError(ValueError):
@@ -106,14 +121,54 @@ def check_protocol(cycles: int, average: int) -> None:
 
 
 def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: int = 5,
-              control: StepControl = StepControl(), lanes: int | None = None) -> CycleMetrics:
-    """Run the protocol on a flat batch of cells (one compiled call, cached per shape)."""
+              control: StepControl = StepControl(), lanes: int | None = None,
+              protocol: str = "paper", successor=None, tol: float = 1e-6,
+              initial=None) -> CycleMetrics:
+    """Run a protocol on a flat batch of cells (compiled calls cached per shape).
+
+    ``"paper"``: ``cycles`` from rest, mean of the last ``average``. ``"continuation"``: the
+    same, but cell ``i`` hands its final state to cell ``successor[i]`` (``n`` = none).
+    ``"periodic"``: :func:`jaxdea.steady.periodic_cells` with tolerance ``tol`` (``cycles``
+    and ``average`` unused). ``initial``: start states (leading axis = cells; default rest).
+    """
     check_protocol(cycles, average)
     if not isinstance(model, Model):
         raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
+    if protocol not in PROTOCOLS:
+        raise SweepError(f"protocol = {protocol!r} must be one of {', '.join(PROTOCOLS)}")
     n = loadings.drive.frequency.shape[0]
-    return _run(model.actuator, loadings, cycles=int(cycles), average=int(average),
-                control=control, lanes=lanes or default_lanes(n))
+    lanes = lanes or default_lanes(n)
+    if protocol == "periodic":
+        from .steady import periodic_cells
+        return periodic_cells(model.actuator, loadings, tol=tol, control=control, lanes=lanes)
+    if protocol == "continuation" and successor is None:
+        raise SweepError("protocol='continuation' needs the successor of each cell")
+    if protocol == "paper" or successor is None:
+        successor = np.full(n, n)
+    # one compiled engine for paper and continuation runs of any cycle count: the start
+    # states, successors and cycle counts are all arguments, not constants
+    if initial is None:
+        initial = _rest_states(model.actuator, n)
+    return _run(model.actuator, loadings, cycles=jnp.asarray(cycles, jnp.int32),
+                average=jnp.asarray(average, jnp.int32), control=control, lanes=lanes,
+                initial=initial, successor=jnp.asarray(successor, jnp.int32))
+
+
+def chain_successors(n_f: int, n_rest: int = 1, direction: str = "forward",
+                     n_blocks: int = 1) -> np.ndarray:
+    """Successors for frequency continuation over cells laid out C-order as
+    ``(blocks, f, rest)``: each cell hands on to the next (``"forward"``) or previous
+    (``"backward"``) frequency with the same block and rest index; ``size`` marks "none"."""
+    if direction not in DIRECTIONS:
+        raise SweepError(f"direction = {direction!r} must be one of {', '.join(DIRECTIONS)}")
+    size = n_blocks * n_f * n_rest
+    idx = np.arange(size).reshape(n_blocks, n_f, n_rest)
+    succ = np.full_like(idx, size)
+    if direction == "forward":
+        succ[:, :-1, :] = idx[:, 1:, :]
+    else:
+        succ[:, 1:, :] = idx[:, :-1, :]
+    return succ.ravel()
 
 
 def default_lanes(n_cells: int) -> int:
@@ -124,15 +179,28 @@ def default_lanes(n_cells: int) -> int:
 
 def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
           phase: float = 0.0, cycles: int = 100, average: int = 5,
-          control: StepControl = StepControl(), lanes: int | None = None) -> xr.Dataset:
-    """Frequency response of ``model`` under the papers' protocol.
+          control: StepControl = StepControl(), lanes: int | None = None,
+          protocol: str = "paper", direction: str = "forward",
+          tol: float = 1e-6) -> xr.Dataset:
+    """Frequency response of ``model``.
 
     ``mass`` (kg) and ``damping`` (N s/m) of the payload, ``freq`` (Hz, 1-D), ``drive`` one of
     ``"A"``, ``"B"``, ``"both"``; ``phase`` (rad) of B relative to A when both are driven.
-    Each frequency runs ``cycles`` periods from rest; metrics average the last ``average``.
-    Returns a Dataset with dimension ``f`` and variables P_out, P_in, P_in_signed,
-    efficiency, amplitude, v_rms, status (units in attrs).
+    ``protocol="paper"`` (default): each frequency runs ``cycles`` periods from rest; metrics
+    average the last ``average``. ``"continuation"``: the same, but each frequency starts from
+    the previous one's final state, in ``freq`` order (``direction="backward"``: from the
+    highest frequency down) — paper 000's forward sweep, and the backward one that exposes
+    jumps. ``"periodic"``: the periodic steady state to tolerance ``tol``
+    (:mod:`jaxdea.steady`). Returns a Dataset with dimension ``f`` and variables P_out, P_in,
+    P_in_signed, efficiency, amplitude, v_rms, status, steps, residual, cycles_run (units in
+    attrs).
     """
+    if protocol not in PROTOCOLS:
+        raise SweepError(f"protocol = {protocol!r} must be one of {', '.join(PROTOCOLS)}")
+    if direction not in DIRECTIONS:
+        raise SweepError(f"direction = {direction!r} must be one of {', '.join(DIRECTIONS)}")
+    if not (math.isfinite(tol) and 0 < tol < 1):
+        raise SweepError(f"tol = {tol!r} is outside the allowed range (0, 1)")
     freq = _finite_array("freq", freq, positive=True)
     if freq.ndim != 1:
         raise SweepError(f"freq must be 1-D, got shape {freq.shape}")
@@ -140,11 +208,15 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
         if np.ndim(v) != 0:
             raise SweepError(f"{name} must be a scalar for a sweep (use powermap for grids)")
     loadings = make_loadings(model, mass, damping, freq, drive, phase)
+    successor = chain_successors(freq.size, direction=direction)
     res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
-                    lanes=lanes)
+                    lanes=lanes, protocol=protocol, successor=successor, tol=tol)
     return to_dataset(res, {"f": freq}, attrs=dict(
         model=model.name, drive=drive, phase=float(phase), mass=float(mass),
-        damping=float(damping), cycles=int(cycles), average=int(average),
+        damping=float(damping), protocol=protocol,
+        direction=direction if protocol == "continuation" else None,
+        tol=float(tol) if protocol == "periodic" else None,
+        cycles=int(cycles), average=int(average),
         rtol=control.rtol, voltage=float(model.voltage), duty=float(model.duty),
     ))
 

@@ -1,0 +1,44 @@
+"""Run a per-cell function with its cells split evenly over several JAX devices.
+
+Every protocol stage (:func:`jaxdea.protocol.run_protocol`, the shooting step of
+:mod:`jaxdea.steady`) maps independent cells to per-cell results, so it shards trivially:
+``jax.shard_map`` over a 1-D mesh, the model replicated, every other argument and every output
+split along its leading (cell) axis. Each device then runs its own lane pool on its slice.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+_CACHE: dict = {}
+
+
+def cell_sharded(fn: Callable, devices: tuple) -> Callable:
+    """``fn(model, *cell_args, **static)`` run as ``shard_map`` over ``devices`` (jitted,
+    cached per ``fn`` and device set). Cell arguments are pytrees whose leaves all have the
+    cell axis first, with a length divisible by ``len(devices)``; ``static`` keyword
+    arguments are compile-time constants. Index-valued cell arguments (e.g. successors) must
+    be local to each device's slice."""
+    key = (fn, tuple(d.id for d in devices))
+    if key not in _CACHE:
+        mesh = Mesh(np.array(devices), ("cells",))
+
+        def run(model, *cells, **static):
+            dyn, const = eqx.partition(model, eqx.is_array)
+
+            def body(dyn, *cells):
+                return fn(eqx.combine(dyn, const), *cells, **static)
+
+            # check_vma off: the lane engine's while_loop carry starts from replicated values
+            # (the model's rest state) that become device-varying, which the vma check rejects
+            spec = PartitionSpec("cells")
+            return jax.shard_map(body, mesh=mesh, in_specs=(PartitionSpec(),) + (spec,) * len(
+                cells), out_specs=spec, check_vma=False)(dyn, *cells)
+
+        _CACHE[key] = eqx.filter_jit(run)
+    return _CACHE[key]

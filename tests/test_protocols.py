@@ -1,0 +1,159 @@
+"""The continuation and periodic protocols against the papers' protocol they build on.
+
+- continuation: each frequency really starts from the previous one's final state (equal to
+  an explicit hand-over through ``run_protocol(initial=...)``), both directions, on maps and
+  on 4 devices;
+- periodic: agrees with a 400-cycle paper run where that run has converged, including a
+  lightly damped resonance the 100-cycle paper run has not finished, and needs shooting to
+  get there (without Newton the same cells are reported as not converged, status 4).
+
+SCDEA-LS at >= 60 Hz keeps the compiles and runs short.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+import jaxdea
+from jaxdea.steady import flatten_dynamical, periodic_cells, with_dynamical
+from jaxdea.sweep import chain_successors, make_loadings, run_cells
+
+CONFIG = str(Path(__file__).parents[1] / "configs" / "scdea_ls.toml")
+SRC = str(Path(__file__).parents[1] / "src")
+FREQ = np.array([60.0, 80.0, 100.0])
+SHORT = dict(cycles=6, average=2)
+
+
+def _run(model, loads, **kw):
+    """The papers' protocol through the compiled engine the sweeps use (shared compile)."""
+    return run_cells(model, loads, **kw)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return jaxdea.load_config(CONFIG)
+
+
+def test_chain_successors_layout():
+    np.testing.assert_array_equal(chain_successors(3), [1, 2, 3])
+    np.testing.assert_array_equal(chain_successors(3, direction="backward"), [3, 0, 1])
+    # (blocks, f, rest) = (2, 2, 2): cell (b, j, r) -> (b, j + 1, r)
+    np.testing.assert_array_equal(chain_successors(2, 2, "forward", 2),
+                                  [2, 3, 8, 8, 6, 7, 8, 8])
+
+
+def test_continuation_hands_over_the_final_state(model):
+    """Short runs (6 cycles, not yet periodic), so the start state shows in the result."""
+    fwd = jaxdea.sweep(model, mass=2e-3, damping=0.1, freq=FREQ, protocol="continuation",
+                       **SHORT)
+    bwd = jaxdea.sweep(model, mass=2e-3, damping=0.1, freq=FREQ, protocol="continuation",
+                       direction="backward", **SHORT)
+    paper = jaxdea.sweep(model, mass=2e-3, damping=0.1, freq=FREQ, **SHORT)
+    assert np.all(fwd.status.values == 0) and np.all(bwd.status.values == 0)
+    # chain heads start from rest: equal to the paper protocol
+    assert fwd.P_out.values[0] == paper.P_out.values[0]
+    assert bwd.P_out.values[-1] == paper.P_out.values[-1]
+    # the others do not ...
+    assert abs(fwd.P_out.values[1] / paper.P_out.values[1] - 1) > 1e-3
+    assert abs(bwd.P_out.values[1] / paper.P_out.values[1] - 1) > 1e-3
+    # ... and equal an explicit hand-over of the previous cell's final state
+    loads = make_loadings(model, 2e-3, 0.1, FREQ)
+    first = _run(model, loads, **SHORT)
+    start = jax.tree_util.tree_map(lambda a: a[np.array([0, 0, 1])], first.final_state)
+    second = _run(model, loads, initial=start, **SHORT)
+    np.testing.assert_allclose(fwd.P_out.values[1], second.P_out[1], rtol=1e-12)
+    np.testing.assert_allclose(fwd.amplitude.values[1], second.amplitude[1], rtol=1e-12)
+
+
+def test_continuation_map_equals_sweeps_and_four_devices(model, tmp_path):
+    mass, damping = [1e-3, 2e-3], [0.1, 0.2]
+    run = dict(protocol="continuation", progress=False, **SHORT)
+    ds = jaxdea.powermap(model, mass=mass, damping=damping, freq=FREQ, chunk_cells=3, **run)
+    for i, m in enumerate(mass):
+        for j, c in enumerate(damping):
+            sw = jaxdea.sweep(model, mass=m, damping=c, freq=FREQ, protocol="continuation",
+                              **SHORT)
+            np.testing.assert_allclose(ds.P_out.values[i, j], sw.P_out.values, rtol=1e-12)
+    store = tmp_path / "cont.nc"
+    script = textwrap.dedent(f"""
+        import jax, jaxdea
+        assert len(jax.devices()) == 4
+        model = jaxdea.load_config({CONFIG!r})
+        ds = jaxdea.powermap(model, mass={mass!r}, damping={damping!r},
+                             freq={FREQ.tolist()!r}, store={str(store)!r}, **{run!r})
+        print("chunks", ds.attrs["chunks_computed"])
+    """)
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env.update(PYTHONPATH=SRC + os.pathsep + env.get("PYTHONPATH", ""),
+               XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert "chunks 1" in res.stdout  # 4 chains of 3 f: one chunk, one chain per device
+    sharded = jaxdea.mapstore.open_map(store)
+    np.testing.assert_array_equal(sharded.status.values, ds.status.values)
+    np.testing.assert_allclose(sharded.P_out.values, ds.P_out.values, rtol=1e-10)
+
+
+@pytest.fixture(scope="module")
+def long_runs(model):
+    """A lightly damped payload (M = 10 g, c = 0.1 N s/m: ~0.2 s decay) at three frequencies,
+    one near the resonance: the periodic protocol vs 100- and 400-cycle paper runs."""
+    freq = np.array([60.0, 85.0, 140.0])
+    loads = make_loadings(model, 1e-2, 0.1, freq)
+    paper400 = _run(model, loads, cycles=400, average=5)
+    paper100 = _run(model, loads, cycles=100, average=5)
+    periodic = periodic_cells(model.actuator, loads)
+    return freq, loads, paper100, paper400, periodic
+
+
+def test_periodic_agrees_with_long_paper_run(long_runs):
+    freq, _, paper100, paper400, periodic = long_runs
+    assert np.all(np.asarray(periodic.status) == 0)
+    converged = np.asarray(paper400.residual) < 1e-8
+    assert converged.all(), paper400.residual
+    err = np.abs(np.asarray(periodic.P_out) / np.asarray(paper400.P_out) - 1)
+    assert err.max() < 2e-3 * 0.1, err  # 10x inside the issue's 0.2 %
+    np.testing.assert_allclose(periodic.amplitude, paper400.amplitude, rtol=1e-3)
+    np.testing.assert_allclose(periodic.P_in, paper400.P_in, rtol=1e-3)
+    assert np.all(np.asarray(periodic.residual) < 1e-6)
+    # the 100-cycle run is still visibly off at the slowest cell (why 'periodic' exists)
+    assert np.max(np.asarray(paper100.residual)) > 1e-5
+    # and periodic got there in far fewer cycles than the paper's 100
+    assert np.all(np.asarray(periodic.cycles_run) < 40), periodic.cycles_run
+
+
+def test_periodic_needs_newton_where_settling_is_slow(model, long_runs):
+    _, loads, _, _, periodic = long_runs
+    settle_only = periodic_cells(model.actuator, loads, newton=0)
+    status = np.asarray(settle_only.status)
+    assert np.any(status == 4), "expected a cell that 12 cycles from rest do not settle"
+    assert np.all(np.asarray(periodic.status)[status == 4] == 0)
+
+
+def test_flatten_roundtrip(model):
+    y = model.actuator.initial_state()
+    flat = flatten_dynamical(y)
+    assert flat.shape == (5,)
+    back = with_dynamical(y, flat + 1.0)
+    np.testing.assert_allclose(back.q, y.q + 1.0)
+    np.testing.assert_allclose(back.xi_el, y.xi_el + 1.0)
+    np.testing.assert_array_equal(back.energy_in, y.energy_in)
+
+
+def test_periodic_rejects_bad_settings(model):
+    loads = make_loadings(model, 1e-3, 0.1, FREQ)
+    with pytest.raises(ValueError, match="tol = 0 is outside the allowed range"):
+        periodic_cells(model.actuator, loads, tol=0)
+    with pytest.raises(ValueError, match="warmup must be an integer >= 2"):
+        periodic_cells(model.actuator, loads, warmup=1)
+    with pytest.raises(jaxdea.SweepError, match="protocol = 'steady' must be one of"):
+        jaxdea.sweep(model, mass=1e-3, damping=0.1, freq=FREQ, protocol="steady")
