@@ -188,3 +188,40 @@ def plot_pmax_ratio(ds: xr.Dataset, other: xr.Dataset, path: str | Path | None =
     ax.set_title(f"P_max ratio: drive {da} / drive {db} ({ds.attrs.get('model', '')}){note}",
                  fontsize=9)
     return _save(fig, path)
+
+
+# ---- rotational double cone (paper 003 Fig 12) ----------------------------------------------
+
+
+def plot_rotary_study(ds: xr.Dataset, path: str | Path | None = None):
+    """Steady rotation angle over inner radius x half spacer length (paper 003 Fig 12 style):
+    filled contours with labelled iso-angle lines, the grid optimum marked, cells with a
+    non-zero ``status`` (no stable equilibrium, not converged, invalid geometry) as red x."""
+    ri = 1e3 * ds["ri"].values
+    d = 1e3 * ds["d"].values
+    th = ds["theta_deg"].values  # dims (ri, d)
+    ok = ds["status"].values == 0
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    if ri.size > 1 and d.size > 1 and ok.any():
+        z = np.where(ok, th, np.nan).T
+        cf = ax.contourf(ri, d, z, levels=14, cmap="viridis")
+        cs = ax.contour(ri, d, z, levels=cf.levels[::2], colors="k", linewidths=0.6)
+        ax.clabel(cs, fmt="%.1f", fontsize=7)
+        fig.colorbar(cf, ax=ax, label=r"rotation angle $\theta$ (deg)")
+        i, j = np.unravel_index(int(np.nanargmax(np.where(ok, th, -np.inf))), th.shape)
+        ax.plot(ri[i], d[j], "w*", ms=12, mec="k",
+                label=f"max {th[i, j]:.2f} deg at r_i = {ri[i]:.2f} mm, d = {d[j]:.2f} mm")
+        ax.legend(loc="upper right", fontsize=7)
+    if (~ok).any():
+        R, D = np.meshgrid(ri, d, indexing="ij")
+        ax.plot(R[~ok], D[~ok], "rx", ms=4, label="status != 0")
+    ax.set_xlabel(r"inner radius $r_i$ (mm)")
+    ax.set_ylabel(r"half spacer length $d$ (mm)")
+    a = ds.attrs
+    ax.set_title(f"rotary DC-DEA steady angle ({a.get('field_mode', '')} field, "
+                 f"g = {a.get('gravity', 0.0):g} m/s$^2$)", fontsize=10)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=130)
+        plt.close(fig)
+    return fig
