@@ -1,0 +1,103 @@
+"""``jaxdea calibrate CONFIG --data FILE --fit a,b,... --method ... --out fitted.toml``."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import math
+from pathlib import Path
+
+
+def parse_bounds(text: str | None) -> dict[str, tuple[float, float]]:
+    """``name=LO:HI,name2=LO:HI`` -> ``{name: (LO, HI)}``."""
+    out: dict[str, tuple[float, float]] = {}
+    if not text:
+        return out
+    for item in text.split(","):
+        name, sep, rng = item.partition("=")
+        lo, sep2, hi = rng.partition(":")
+        if not (sep and sep2 and name.strip()):
+            raise ValueError(f"--bounds must be NAME=LO:HI[,NAME=LO:HI...], got {item!r}")
+        try:
+            out[name.strip()] = (float(lo), float(hi))
+        except ValueError:
+            raise ValueError(f"--bounds {item!r}: LO and HI must be numbers") from None
+    return out
+
+
+def _calibrate(args) -> int:
+    import jaxdea
+    from jaxdea.caldata import FrequencyResponse, load_data
+    from jaxdea.calibrate import (calibrate, frequency_response, get_params, make_params,
+                                  plot_fit, write_fitted_config)
+    from jaxdea.config import Model
+
+    out = Path(args.out)
+    if out.suffix != ".toml":
+        raise ValueError(f"--out must end in .toml, got {out}")
+    if args.plot and not args.plot.endswith(".png"):
+        raise ValueError(f"--plot must end in .png, got {args.plot!r}")
+    model = jaxdea.load_config(args.config)
+    data = load_data(args.data)
+    fit = [n.strip() for n in args.fit.split(",") if n.strip()]
+    bounds = parse_bounds(args.bounds)
+    start = get_params(model, fit)
+    if args.method == "de":  # DE needs a box: default one decade either side of the start
+        for name, v in start.items():
+            short = [k for k in bounds if name == k or name.endswith("." + k)]
+            if not short:
+                if not (v > 0 and math.isfinite(v)):
+                    raise ValueError(f"--method de needs --bounds for {name} (start {v:g})")
+                bounds[name] = (v / 10.0, v * 10.0)
+    make_params(model, fit, bounds)  # validate before any compilation
+    predict = None
+    if isinstance(data, FrequencyResponse) and isinstance(model, Model):
+        predict = functools.partial(frequency_response, cycles=args.cycles,
+                                    average=args.average)
+    de_options = {"popsize": args.popsize} if args.popsize else None
+    print(f"jaxdea calibrate: {getattr(model, 'name', type(model).__name__)}, "
+          f"{type(data).__name__} {args.data}, fit {', '.join(start)}, method {args.method}",
+          flush=True)
+    res = calibrate(model, data, fit, bounds=bounds or None, method=args.method,
+                    loss=args.loss, seed=args.seed, predict=predict, maxiter=args.maxiter,
+                    de_options=de_options, curvature=not args.no_curvature)
+    print(res.summary())
+    header = (f"fitted by: jaxdea calibrate --method {args.method} --loss {args.loss} "
+              f"--data {args.data}\nloss {res.loss:.6g}, e_rms {res.e_rms:.3g} %, "
+              f"e_m {res.e_m:.3g} %, {res.n_evals} model evaluations")
+    write_fitted_config(args.config, out, res.params, header=header)
+    jaxdea.load_config(out)  # loads like any other config
+    print(f"wrote {out}")
+    if args.plot:
+        plot_fit(res, data, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def add_calibrate_parser(sub) -> argparse.ArgumentParser:
+    c = sub.add_parser("calibrate", help="fit model parameters to measured data "
+                                         "(L-BFGS, Adam, Gauss-Newton or differential evolution)")
+    c.add_argument("config", help="TOML config whose parameters are the start values")
+    c.add_argument("--data", required=True,
+                   help="measured data (.csv or .nc): a time series (t, voltage, displacement"
+                        "[, force]) or a frequency response (f, amplitude and/or P_out, mass, "
+                        "damping); units in the header, e.g. 'f [Hz]'")
+    c.add_argument("--fit", required=True,
+                   help="comma-separated parameters to fit: paths or unique suffixes, e.g. "
+                        "dielectric.mu_A,dielectric.tau")
+    c.add_argument("--method", default="lbfgs", choices=["lbfgs", "adam", "lm", "de"])
+    c.add_argument("--loss", default="mse", choices=["mse", "relative", "log"])
+    c.add_argument("--bounds", help="NAME=LO:HI,... in SI units (de default: start/10:start*10)")
+    c.add_argument("--seed", type=int, default=0, help="random seed (de)")
+    c.add_argument("--maxiter", type=int, help="iterations (generations for de)")
+    c.add_argument("--popsize", type=int, help="de population (default 240, paper 001)")
+    c.add_argument("--cycles", type=int, default=20,
+                   help="frequency responses: drive periods from rest per frequency")
+    c.add_argument("--average", type=int, default=5,
+                   help="frequency responses: last periods averaged")
+    c.add_argument("--no-curvature", action="store_true",
+                   help="skip the Gauss-Newton curvature / covariance at the optimum")
+    c.add_argument("--out", required=True, help="fitted config (.toml)")
+    c.add_argument("--plot", help="optional PNG: measured vs model")
+    c.set_defaults(func=_calibrate)
+    return c
