@@ -97,11 +97,12 @@ def _sweep(args) -> int:
     model = jaxdea.load_config(args.config)
     control = jaxdea.StepControl(rtol=args.rtol)
     print(f"jaxdea sweep: {model.name}, drive {args.drive}, {freq.size} frequencies "
-          f"{freq[0]:g}-{freq[-1]:g} Hz, {args.cycles} cycles (average last {args.average})",
-          flush=True)
+          f"{freq[0]:g}-{freq[-1]:g} Hz, protocol {args.protocol}, {args.cycles} cycles "
+          f"(average last {args.average})", flush=True)
     ds = jaxdea.sweep(model, mass=args.mass, damping=args.damping, freq=freq, drive=args.drive,
                       phase=args.phase, cycles=args.cycles, average=args.average,
-                      control=control)
+                      control=control, protocol=args.protocol, direction=args.direction,
+                      tol=args.tol)
     write_dataset(ds, out)
     i = int(np.argmax(ds["P_out"].values))
     bad = int((ds["status"] != 0).sum())
@@ -133,12 +134,13 @@ def _powermap(args) -> int:
           f"{mass.size} M x {damping.size} c x {freq.size} f"
           + (f" x {phase.size} phase" if phase is not None else "")
           + f" = {n} cells, {args.cycles} cycles (average last {args.average}), "
-          f"{len(jax.devices())} device(s)", flush=True)
+          + (f"{args.direction} continuation, " if args.protocol == "continuation" else "")
+          + f"{len(jax.devices())} device(s)", flush=True)
     ds = jaxdea.powermap(model, mass=mass, damping=damping, freq=freq, phase=phase,
                          drive=args.drive, protocol=args.protocol, cycles=args.cycles,
                          average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
-                         chunk_cells=args.chunk, store=out, resume=args.resume,
-                         progress=not args.no_progress)
+                         direction=args.direction, tol=args.tol, chunk_cells=args.chunk,
+                         store=out, resume=args.resume, progress=not args.no_progress)
     print(f"chunks: {ds.attrs['chunks_computed']} computed, {ds.attrs['chunks_reused']} reused",
           flush=True)
     bad = int((ds["status"] != 0).sum())
@@ -182,6 +184,59 @@ def _plot(args) -> int:
     return 0
 
 
+def _protocol_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--protocol", default="paper", choices=["paper", "continuation", "periodic"],
+                   help="paper: N cycles from rest per cell, mean of the last K; continuation: "
+                        "the same, each f starting from the previous f's final state; periodic: "
+                        "periodic steady state (settle, then Newton shooting)")
+    p.add_argument("--direction", default="forward", choices=["forward", "backward"],
+                   help="continuation: up (forward, as paper 000) or down the f axis")
+    p.add_argument("--tol", type=float, default=1e-6,
+                   help="periodic: tolerance on the scaled periodicity residual, (0, 1)")
+
+
+def _lin_points(text: str, name: str) -> np.ndarray:
+    """``MIN:MAX:N[:lin|:log]`` with linear spacing unless ``:log`` is given."""
+    return parse_points(text + ":lin" if text.count(":") == 2 else text, name)
+
+
+def _rotary_study(args) -> int:
+    import jaxdea
+    from jaxdea.actuators.rotary import RotaryDCDEA, ROTARY_STATUS
+    from jaxdea.plotting import plot_rotary_study
+
+    out = Path(args.out)
+    if out.suffix != ".nc":
+        raise ValueError(f"--out must end in .nc (NetCDF), got {out}")
+    if args.plot and not args.plot.endswith(".png"):
+        raise ValueError(f"--plot must end in .png, got {args.plot!r}")
+    ri = _lin_points(args.ri, "--ri")
+    d = _lin_points(args.d, "--d")
+    model = jaxdea.load_config(args.config)
+    if not isinstance(model, RotaryDCDEA):
+        raise ValueError(f"{args.config}: rotary-study needs model = \"rotary_dcdea\"")
+    if args.field is not None:
+        model = model.with_field(args.field)
+    print(f"jaxdea rotary-study: {ri.size} r_i x {d.size} d = {ri.size * d.size} points, "
+          f"{model.field} field", flush=True)
+    ds = jaxdea.rotary_study(model, ri, d)
+    write_dataset(ds, out)
+    th = ds["theta_deg"].values
+    bad = {int(k): int((ds["status"] == k).sum()) for k in np.unique(ds["status"]) if k != 0}
+    if np.isfinite(th).any():
+        i, j = np.unravel_index(int(np.nanargmax(th)), th.shape)
+        print(f"wrote {out}: max theta {th[i, j]:.3f} deg at r_i = {1e3 * ri[i]:g} mm, "
+              f"d = {1e3 * d[j]:g} mm")
+    else:
+        print(f"wrote {out}: no point with a stable equilibrium")
+    for k, n in bad.items():
+        print(f"  {n} point(s) with status {k}: {ROTARY_STATUS[k]}")
+    if args.plot:
+        plot_rotary_study(ds, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxdea", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -195,6 +250,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--cycles", type=int, default=100, help="drive periods per frequency")
     s.add_argument("--average", type=int, default=5, help="last periods averaged")
     s.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
+    _protocol_args(s)
     s.add_argument("--out", required=True, help="output NetCDF file (.nc)")
     s.add_argument("--plot", help="optional PNG: amplitude and P_out against f (Fig 6 style)")
     s.set_defaults(func=_sweep)
@@ -209,11 +265,10 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--phase", help="MIN:MAX:N phases of B vs A, rad: N points in [MIN, MAX) "
                                    "(drive both only)")
     m.add_argument("--drive", default="A", choices=["A", "B", "both"])
-    m.add_argument("--protocol", default="paper", choices=["paper", "continuation", "periodic"],
-                   help="paper: N cycles from rest per cell, mean of the last K")
     m.add_argument("--cycles", type=int, default=100, help="drive periods per cell")
     m.add_argument("--average", type=int, default=5, help="last periods averaged")
     m.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
+    _protocol_args(m)
     m.add_argument("--chunk", type=int, help="cells per compiled call (default 1024 per device)")
     m.add_argument("--out", required=True, help="output store: .zarr (Zarr) or .nc (NetCDF)")
     m.add_argument("--resume", action="store_true",
@@ -232,6 +287,27 @@ def build_parser() -> argparse.ArgumentParser:
                                               "default: the M of the largest P_max)")
     g.add_argument("--out", required=True, help="output PNG")
     g.set_defaults(func=_plot)
+
+    r = sub.add_parser("rotary-study",
+                       help="steady angle of the rotational double cone over r_i x d "
+                            "(paper 003 Fig 12)")
+    r.add_argument("config", help="TOML config, e.g. configs/rotary_dcdea.toml")
+    r.add_argument("--ri", required=True,
+                   help="MIN:MAX:N[:lin|:log] inner radii r_i, m (N points, default lin)")
+    r.add_argument("--d", required=True,
+                   help="MIN:MAX:N[:lin|:log] half spacer lengths d, m (N points, default lin)")
+    r.add_argument("--field", choices=["frozen", "literal"],
+                   help="eq-9 reading (default: the config's)")
+    r.add_argument("--out", required=True, help="output NetCDF file (.nc)")
+    r.add_argument("--plot", help="optional PNG: contour of the angle (Fig 12 style)")
+    r.set_defaults(func=_rotary_study)
+
+    from jaxdea.calibrate_cli import add_calibrate_parser
+
+    add_calibrate_parser(sub)
+    from jaxdea.transient_cli import add_simulate_parser
+
+    add_simulate_parser(sub)
     return p
 
 

@@ -104,7 +104,12 @@ ACTUATOR_CLASSES: dict[str, type[ConeActuator]] = {
 #: -> ``"module:function"`` taking the parsed config dict and returning the validated model.
 #: Imported lazily so each family stays in its own module; each validates with :class:`Field`
 #: and raises :class:`ConfigError` like the cone loader below.
-EXTERNAL_LOADERS: dict[str, str] = {}
+EXTERNAL_LOADERS: dict[str, str] = {
+    "rotary_dcdea": "jaxdea.actuators.rotary:model_from_config",
+    "planar_gu2017": "jaxdea.actuators.planar:model_from_config",
+    "mass_cone_huang2020": "jaxdea.actuators.mass_cone:model_from_config",
+    "mass_cone_nouhi": "jaxdea.actuators.mass_cone:model_from_config",
+}
 
 
 class Model(eqx.Module):
