@@ -124,14 +124,11 @@ def periodic_section(quick: bool) -> dict[str, str]:
           f"{per.cycles_run.values.mean():.1f} (paper 100); max |P_out/P_out(400) - 1| over "
           f"the {int(conv.sum())} cells the 400-cycle run converged: {err.max():.1e} "
           f"(paper 100 cycles: {err100.max():.1e})", flush=True)
-    # the sweep's f are spread like the full map's, so its time per cell projects the map
-    full_s = runs["periodic"][1] / n * 50 * 50 * 996
-    print(f"periodic: projected full 50 x 50 x 996 map {full_s / 3600:.1f} h here "
-          "(payload mix of the full map not sampled: an estimate)")
+    # (no full-map projection from these 128 cells: both timings are set by the critical
+    # path of the 1 Hz cells, not by throughput; the speed-up compares like with like)
     return {"periodic_speedup": f"{speedup:.2f}", "periodic_max_rel_err": f"{err.max():.2e}",
             "periodic_s": f"{runs['periodic'][1]:.1f}", "paper100_s": f"{runs['paper'][1]:.1f}",
-            "periodic_cells": str(n), "paper100_max_rel_err": f"{err100.max():.2e}",
-            "projected_full_map_periodic_s": f"{full_s:.0f}"}
+            "periodic_cells": str(n), "paper100_max_rel_err": f"{err100.max():.2e}"}
 
 
 if __name__ == "__main__":
