@@ -11,8 +11,8 @@ mu_B, tau from starts off by a factor of 3 (x3, /3, x3), inside boxes of a decad
 of the truth. ``--with-jb`` also fits J_B, which the data do not identify: the loss is flat
 along it to ~1e-4 relative, so DE, which samples the whole box, ends a hair lower (J_B at its
 bound) than L-BFGS, which stops where the slope along J_B is below round-off. Problem
-``a`` (the mass cone under the eq-25 multi-sine) is not available yet (see docs/models.md
-section 8).
+``a`` (the mass cone under the eq-25 multi-sine) is bench/calibration_mass_cone_bench.py,
+which reuses :func:`compare_methods` below.
 
     python bench/calibration_bench.py                    # DE at paper settings (slow on CPU)
     python bench/calibration_bench.py --de-pop 40 --de-gens 20   # reduced
@@ -21,38 +21,17 @@ section 8).
 from __future__ import annotations
 
 import argparse
-import functools
+import sys
 import time
 from pathlib import Path
 
-import equinox as eqx
-import numpy as np
+sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 
-import jaxdea
-from jaxdea.caldata import FrequencyResponse
-from jaxdea.calibrate import calibrate, frequency_response, get_params, set_params
+from jaxdea.calibrate import calibrate  # noqa: E402
+from test_calibrate import FIT_B, PREDICT_B, make_problem_b  # noqa: E402
 
-CONFIG = Path(__file__).parents[1] / "configs" / "scdea_ls.toml"
-FIT = ["dielectric.mu_A", "dielectric.mu_B", "dielectric.tau"]
-PREDICT = functools.partial(frequency_response, cycles=12, average=4)
-
-
-def problem_b(seed: int = 1, fit=FIT):
-    true = jaxdea.load_config(CONFIG)
-    f1 = np.linspace(30.0, 150.0, 10)
-    f = np.tile(f1, 3)
-    mass = np.repeat([1e-3, 4e-3, 16e-3], f1.size)
-    shape = FrequencyResponse(f=f, mass=mass, damping=0.1, P_out=np.ones_like(f))
-    clean = eqx.filter_jit(lambda m: PREDICT(m, shape))(true)
-    rng = np.random.default_rng(seed)
-    noisy = {k: np.asarray(v) * (1 + 0.01 * rng.standard_normal(f.size))
-             for k, v in clean.items()}
-    data = FrequencyResponse(f=f, mass=mass, damping=0.1, **noisy)
-    truth = get_params(true, fit)
-    start = set_params(true, {k: v * (3.0 if i % 2 == 0 else 1 / 3)
-                              for i, (k, v) in enumerate(truth.items())})
-    bounds = {k: (v / 10, v * 10) for k, v in truth.items()}
-    return start, data, truth, bounds
+FIT = FIT_B[:3]  # mu_A, mu_B, tau: J_B (not identified) only with --with-jb
+PREDICT = PREDICT_B
 
 
 def main() -> None:
@@ -65,18 +44,25 @@ def main() -> None:
     ap.add_argument("--with-jb", action="store_true", help="also fit J_B (not identified)")
     args = ap.parse_args()
     if args.problem == "a":
-        raise SystemExit("problem a (mass cone, eq-25 multi-sine) is not available yet: "
-                         "see docs/models.md section 8")
-    fit = FIT + ["dielectric.J_B"] if args.with_jb else FIT
-    start, data, truth, bounds = problem_b(fit=fit)
+        raise SystemExit("problem a (mass cone, eq-25 multi-sine): run "
+                         "bench/calibration_mass_cone_bench.py")
+    fit = FIT_B if args.with_jb else FIT
+    start, data, truth, bounds = make_problem_b(fit=fit)
     common = dict(bounds=bounds, loss="relative", predict=PREDICT, curvature=False)
-    out = {}
     runs = [
         ("de", dict(method="de", seed=args.seed, maxiter=args.de_gens,
                     de_options=dict(popsize=args.de_pop))),
         ("lbfgs", dict(method="lbfgs")),
         ("adam", dict(method="adam", maxiter=args.adam_steps, learning_rate=0.05)),
     ]
+    compare_methods(start, data, fit, truth, common, runs)
+
+
+def compare_methods(start, data, fit, truth, common: dict, runs, label: str = "") -> None:
+    """Run ``calibrate`` once per ``(name, options)`` of ``runs`` (DE, L-BFGS, Adam), print
+    evaluations, wall time, loss and parameter errors of each, the L-BFGS-vs-DE verdict and
+    the ``RESULT`` line. ``label`` qualifies the DE run in the verdict (e.g. "reduced DE")."""
+    out = {}
     for name, kw in runs:
         t0 = time.perf_counter()
         res = calibrate(start, data, fit, **common, **kw)
@@ -88,9 +74,9 @@ def main() -> None:
     de, lb = out["de"], out["lbfgs"]
     rel = (lb[1] - de[1]) / de[1]
     verdict = "reaches" if rel <= 1e-6 else "does not reach"
-    print(f"L-BFGS: {de[0] / lb[0]:.0f}x fewer model evaluations than DE; it {verdict} DE's "
-          f"final loss ({lb[1]:.8e} vs {de[1]:.8e}, relative difference {rel:+.1e}; "
-          "1e-6 counts as equal)")
+    print(f"L-BFGS: {de[0] / lb[0]:.1f}x fewer model evaluations than DE"
+          + (f" ({label})" if label else "") + f"; it {verdict} DE's final loss "
+          f"({lb[1]:.8e} vs {de[1]:.8e}, relative difference {rel:+.1e}; 1e-6 counts as equal)")
     print("RESULT " + " ".join(f"{k}_evals={v[0]} {k}_loss={v[1]:.6e} {k}_s={v[2]:.1f}"
                                for k, v in out.items()))
 

@@ -25,14 +25,15 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import jax
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).parent))
 
-from jaxdea.calibrate import DE_PAPER, calibrate  # noqa: E402
+from calibration_bench import compare_methods  # noqa: E402
+from jaxdea.calibrate import DE_PAPER  # noqa: E402
 from test_calibrate_mass_cone import FIT, problem_a  # noqa: E402
 
 
@@ -61,23 +62,8 @@ def main() -> None:
         ("lbfgs", dict(method="lbfgs")),  # default tol 1e-10: tol 1e-8 stops 3 % above DE
         ("adam", dict(method="adam", maxiter=args.adam_steps, learning_rate=0.05)),
     ]
-    out = {}
-    for name, kw in runs:
-        t0 = time.perf_counter()
-        res = calibrate(start, data, FIT, **common, **kw)
-        wall = time.perf_counter() - t0
-        err = {k.split(".")[-1]: f"{100 * (res.params[k] / truth[k] - 1):+.1f}%" for k in truth}
-        print(f"{name:6s} evals {res.n_evals:7d}  wall {wall:8.1f} s  loss {res.loss:.4e}  "
-              f"e_rms {res.e_rms:.3f} %  errors {err}", flush=True)
-        out[name] = (res.n_evals, res.loss, wall)
-    de, lb = out["de"], out["lbfgs"]
-    rel = (lb[1] - de[1]) / de[1]
-    verdict = "reaches" if rel <= 1e-6 else "does not reach"
-    print(f"L-BFGS: {de[0] / lb[0]:.1f}x fewer model evaluations than DE "
-          f"({'paper' if args.paper else 'reduced'} DE); it {verdict} DE's final loss "
-          f"({lb[1]:.8e} vs {de[1]:.8e}, relative difference {rel:+.1e})")
-    print("RESULT " + " ".join(f"{k}_evals={v[0]} {k}_loss={v[1]:.6e} {k}_s={v[2]:.1f}"
-                               for k, v in out.items()))
+    compare_methods(start, data, FIT, truth, common, runs,
+                    label="paper DE" if args.paper else "reduced DE")
 
 
 if __name__ == "__main__":
