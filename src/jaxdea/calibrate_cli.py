@@ -30,13 +30,13 @@ def _calibrate(args) -> int:
     from jaxdea.caldata import FrequencyResponse, load_data
     from jaxdea.calibrate import (calibrate, frequency_response, get_params, make_params,
                                   plot_fit, write_fitted_config)
+    from jaxdea.cli import check_png
     from jaxdea.config import Model
 
     out = Path(args.out)
     if out.suffix != ".toml":
         raise ValueError(f"--out must end in .toml, got {out}")
-    if args.plot and not args.plot.endswith(".png"):
-        raise ValueError(f"--plot must end in .png, got {args.plot!r}")
+    check_png(args.plot)
     model = jaxdea.load_config(args.config)
     data = load_data(args.data)
     fit = [n.strip() for n in args.fit.split(",") if n.strip()]

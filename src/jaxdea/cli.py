@@ -86,13 +86,25 @@ def write_dataset(ds, out: Path) -> None:
     os.replace(tmp, out)
 
 
+def netcdf_out(text: str) -> Path:
+    """The ``--out`` path of a command that writes one NetCDF file."""
+    out = Path(text)
+    if out.suffix != ".nc":
+        raise ValueError(f"--out must end in .nc (NetCDF), got {out}")
+    return out
+
+
+def check_png(text: str | None, name: str = "--plot", required: bool = False) -> None:
+    """A PNG path argument; unless ``required``, empty or None means no figure was asked for."""
+    if (required or text) and not (text or "").endswith(".png"):
+        raise ValueError(f"{name} must end in .png, got {text!r}")
+
+
 def _sweep(args) -> int:
     import jaxdea
     from jaxdea.plotting import plot_sweep
 
-    out = Path(args.out)
-    if out.suffix != ".nc":
-        raise ValueError(f"--out must end in .nc (NetCDF), got {out}")
+    out = netcdf_out(args.out)
     freq = parse_range(args.freq)
     model = jaxdea.load_config(args.config)
     control = jaxdea.StepControl(rtol=args.rtol)
@@ -126,8 +138,7 @@ def _powermap(args) -> int:
     damping = parse_points(args.damping, "--damping")
     freq = parse_range(args.freq, "--freq")
     phase = parse_phases(args.phase) if args.phase is not None else None
-    if args.plot and not args.plot.endswith(".png"):
-        raise ValueError(f"--plot must end in .png, got {args.plot!r}")
+    check_png(args.plot)
     model = jaxdea.load_config(args.config)
     n = mass.size * damping.size * freq.size * (1 if phase is None else phase.size)
     print(f"jaxdea powermap: {model.name}, drive {args.drive}, protocol {args.protocol}: "
@@ -165,8 +176,7 @@ def _plot(args) -> int:
     from jaxdea.mapstore import open_map
     from jaxdea.plotting import plot_pmax, plot_pmax_ratio, plot_pout_fc
 
-    if not args.out.endswith(".png"):
-        raise ValueError(f"--out must end in .png, got {args.out!r}")
+    check_png(args.out, "--out", required=True)
     if args.kind == "ratio" and args.other is None:
         raise ValueError("--kind ratio needs --other MAP2 (the denominator map)")
     if args.kind != "ratio" and args.other is not None:
@@ -205,11 +215,8 @@ def _rotary_study(args) -> int:
     from jaxdea.actuators.rotary import RotaryDCDEA, ROTARY_STATUS
     from jaxdea.plotting import plot_rotary_study
 
-    out = Path(args.out)
-    if out.suffix != ".nc":
-        raise ValueError(f"--out must end in .nc (NetCDF), got {out}")
-    if args.plot and not args.plot.endswith(".png"):
-        raise ValueError(f"--plot must end in .png, got {args.plot!r}")
+    out = netcdf_out(args.out)
+    check_png(args.plot)
     ri = _lin_points(args.ri, "--ri")
     d = _lin_points(args.d, "--d")
     model = jaxdea.load_config(args.config)

@@ -67,14 +67,11 @@ def plot_transient(ds, path: str) -> None:
 
 def _simulate(args) -> int:
     import jaxdea
-    from jaxdea.cli import write_dataset
+    from jaxdea.cli import check_png, netcdf_out, write_dataset
     from jaxdea.viscoelastic import transient
 
-    out = Path(args.out)
-    if out.suffix != ".nc":
-        raise ValueError(f"--out must end in .nc (NetCDF), got {out}")
-    if args.plot and not args.plot.endswith(".png"):
-        raise ValueError(f"--plot must end in .png, got {args.plot!r}")
+    out = netcdf_out(args.out)
+    check_png(args.plot)
     if args.cycles < 1:
         raise ValueError(f"--cycles must be >= 1, got {args.cycles}")
     if args.points < 8:
