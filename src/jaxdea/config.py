@@ -103,12 +103,13 @@ ACTUATOR_CLASSES: dict[str, type[ConeActuator]] = {
 #: Model families outside the square-wave cones (rotary, mass cone, planar ...): ``model = kind``
 #: -> ``"module:function"`` taking the parsed config dict and returning the validated model.
 #: Imported lazily so each family stays in its own module; each validates with :class:`Field`
-#: and raises :class:`ConfigError` like the cone loader below.
+#: and raises :class:`ConfigError` like the cone loader below (a plain ``ValueError`` from a
+#: model's own checks is reported as a :class:`ConfigError` too).
 EXTERNAL_LOADERS: dict[str, str] = {
     "rotary_dcdea": "jaxdea.actuators.rotary:model_from_config",
-    "planar_gu2017": "jaxdea.actuators.planar:model_from_config",
-    "mass_cone_huang2020": "jaxdea.actuators.mass_cone:model_from_config",
-    "mass_cone_nouhi": "jaxdea.actuators.mass_cone:model_from_config",
+    "planar_gu2017": "jaxdea.actuators._viscoelastic_config:planar_from_config",
+    "mass_cone_huang2020": "jaxdea.actuators._viscoelastic_config:mass_cone_from_config",
+    "mass_cone_nouhi": "jaxdea.actuators._viscoelastic_config:mass_cone_from_config",
 }
 
 
@@ -155,7 +156,12 @@ def model_from_dict(cfg: dict[str, Any]) -> Model:
     kind = cfg.get("model")
     if isinstance(kind, str) and kind in EXTERNAL_LOADERS:
         module, func = EXTERNAL_LOADERS[kind].split(":")
-        return getattr(importlib.import_module(module), func)(cfg)
+        try:
+            return getattr(importlib.import_module(module), func)(cfg)
+        except ConfigError:
+            raise
+        except ValueError as exc:  # a model's own check, e.g. J below the stretch invariant
+            raise ConfigError(str(exc)) from None
     allowed = {"model", "membrane", "actuator", "drive"}
     unknown = sorted(set(cfg) - allowed)
     if unknown:

@@ -47,7 +47,7 @@ from jaxtyping import Array, ArrayLike
 from ..geometry import cone_kinematics
 from ..materials import EPS0, GentKelvinChain, GentSpringDashpot, gent_denominator
 
-__all__ = ["MassCone", "huang2020", "nouhi_kelvin", "prestretch_report", "model_from_config",
+__all__ = ["MassCone", "huang2020", "nouhi_kelvin", "prestretch_report",
            "HUANG2020_TABLE1", "NOUHI_TABLE2"]
 
 VELOCITY_SCALE = 1e-3  #: s, weight of the stretch rate in :meth:`MassCone.error_norm`
@@ -306,16 +306,3 @@ def prestretch_report(cone: MassCone, mass: float, g: float = G) -> dict:
         "P_weight": P,
         "P_equilibrium": float(cone.equilibrium_load()),
     }
-
-
-def model_from_config(cfg: dict) -> MassCone:
-    """``model = "mass_cone_huang2020"`` / ``"mass_cone_nouhi"`` configs (``configs/``)."""
-    from ..config import ConfigError
-    from ._viscoelastic_config import mass_cone_from_config
-
-    try:
-        return mass_cone_from_config(cfg)
-    except ValueError as exc:
-        if isinstance(exc, ConfigError):
-            raise
-        raise ConfigError(str(exc)) from None

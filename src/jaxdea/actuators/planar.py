@@ -31,7 +31,7 @@ from jaxtyping import Array, ArrayLike
 
 from ..materials import EPS0, GentSpringDashpot, gent_denominator
 
-__all__ = ["PlanarDEA", "GU2017_MODELS", "gu2017", "model_from_config"]
+__all__ = ["PlanarDEA", "GU2017_MODELS", "gu2017"]
 
 
 class PlanarDEA(eqx.Module):
@@ -127,16 +127,3 @@ def gu2017(which: str = "final", eps_r: float = 4.7) -> PlanarDEA:
     return PlanarDEA(L1=jnp.asarray(0.02), L2=jnp.asarray(0.07), H=jnp.asarray(1e-3),
                      lam1p=jnp.asarray(1.5), lam2p=jnp.asarray(2.0),
                      eps=jnp.asarray(eps_r * EPS0), material=mat)
-
-
-def model_from_config(cfg: dict) -> PlanarDEA:
-    """``model = "planar_gu2017"`` configs (see ``configs/gu2017_*.toml``)."""
-    from ..config import ConfigError
-    from ._viscoelastic_config import planar_from_config
-
-    try:
-        return planar_from_config(cfg)
-    except ValueError as exc:
-        if isinstance(exc, ConfigError):
-            raise
-        raise ConfigError(str(exc)) from None
