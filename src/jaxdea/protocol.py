@@ -171,6 +171,12 @@ def periodicity_residual(y1: ConeState, y0: ConeState) -> Array:
     return worst
 
 
+def select_cells(mask: Array, a, b):
+    """Per cell (leading axis), ``a``'s leaves where ``mask`` is true, else ``b``'s."""
+    return jax.tree_util.tree_map(
+        lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
+
+
 def reset_accumulators(y: ConeState) -> ConeState:
     """``y`` with the energy integrals set to zero (a new cell starts its own bookkeeping)."""
     return eqx.tree_at(lambda s: (s.payload_work, s.v2, s.energy_in), y,
@@ -208,13 +214,12 @@ def _window_metrics(lane: _Lane, average: int, cycles: int, settle):
     p_in = jnp.sum(e_in - lane.back) / span
     eff = jnp.where(p_in > 0, p_out / jnp.where(p_in > 0, p_in, 1.0), 0.0)
     finite = _all_finite(y)
-    ok = 0 if settle is None else jnp.where(_settled(lane.res, lane.rate, settle), 0, 4)
+    settled = False if settle is None else _settled(lane.res, lane.rate, settle)
+    unfinished = (lane.cycle < cycles) & ~settled  # stopping early once settled is no failure
+    ok = 0 if settle is None else jnp.where(settled, 0, 4)
     status = jnp.where(
-        ~finite, 2, jnp.where(lane.lockup, 1, jnp.where(lane.cycle < cycles, 3, ok))
+        ~finite, 2, jnp.where(lane.lockup, 1, jnp.where(unfinished, 3, ok))
     ).astype(jnp.int32)
-    if settle is not None:  # stopped early: not a budget problem
-        status = jnp.where(finite & ~lane.lockup & (status == 3)
-                           & _settled(lane.res, lane.rate, settle), 0, status)
     return dict(
         P_out=p_out,
         P_in=p_in,
@@ -347,10 +352,7 @@ def run_protocol(
 
     def load(lane: _Lane, idx: Array, y: ConeState, mask: Array) -> _Lane:
         """Give the lanes in ``mask`` cell ``idx`` starting from ``y``; the others keep theirs."""
-        return jax.tree_util.tree_map(
-            lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (new.ndim - 1)), new, old),
-            fresh(idx, y), lane,
-        )
+        return select_cells(mask, fresh(idx, y), lane)
 
     def lane_step(lane: _Lane) -> _Lane:
         """One attempted adaptive step of one lane (vmapped), then the bookkeeping."""
@@ -461,9 +463,7 @@ def run_protocol(
         pos = next_job + jnp.cumsum(from_queue.astype(jnp.int32)) - 1
         head = queue[jnp.minimum(pos, queue.shape[0] - 1)]
         idx = jnp.where(chained, nxt, head)
-        y_new = jax.tree_util.tree_map(
-            lambda a, b: jnp.where(carry_on.reshape(carry_on.shape + (1,) * (a.ndim - 1)), a, b),
-            reset_accumulators(lane.y), start_state(idx))
+        y_new = select_cells(carry_on, reset_accumulators(lane.y), start_state(idx))
         lane = load(lane, idx, y_new, finished)
         return lane, out, next_job + jnp.sum(from_queue.astype(jnp.int32))
 

@@ -22,14 +22,21 @@ chaotic response, or a Newton iteration that does not contract) get status 4.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .actuators.base import ConeActuator, ConeState, Loading
-from .protocol import DYNAMICAL, CycleMetrics, StepControl, periodicity_residual, run_protocol
+from .protocol import (DYNAMICAL, CycleMetrics, StepControl, periodicity_residual,
+                       run_protocol, select_cells)
 from .sharding import cell_sharded
+
+
+#: The per-cell metrics of :class:`CycleMetrics` (everything but the final state).
+_PER_CELL = tuple(f.name for f in dataclasses.fields(CycleMetrics) if f.name != "final_state")
 
 
 def flatten_dynamical(y: ConeState) -> jax.Array:
@@ -90,11 +97,9 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     ``devices``: split the cells over these JAX devices (their number must divide the cell
     count; ``lanes`` is then the pool of each device); default: one device.
     """
-    for name, v in (("warmup", warmup), ("newton", newton)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (2 if name ==
-                                                                                 "warmup" else 0):
-            raise ValueError(f"{name} must be an integer >= {2 if name == 'warmup' else 0}, "
-                             f"got {v!r}")
+    for name, v, lo in (("warmup", warmup, 2), ("newton", newton, 0)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
     if not (np.isfinite(tol) and 0 < tol < 1):
         raise ValueError(f"tol = {tol!r} is outside the allowed range (0, 1)")
     devices = tuple(devices or jax.devices()[:1])
@@ -102,10 +107,7 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     shoot = cell_sharded(_shoot, devices) if len(devices) > 1 else _SHOOT
     res = settle(actuator, loadings, warmup=int(warmup), tol=float(tol), control=control,
                  lanes=lanes)
-    out = {k: np.asarray(getattr(res, k)) for k in ("P_out", "P_in", "P_in_signed",
-                                                    "efficiency", "amplitude", "v_rms",
-                                                    "status", "steps", "residual",
-                                                    "cycles_run")}
+    out = {k: np.asarray(getattr(res, k)) for k in _PER_CELL}
     final = res.final_state
     y = res.final_state
     pending = out["status"] == 4
@@ -125,10 +127,7 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
         converged = pending & ok & (size < tol)
         failed = pending & ~ok
         out["status"] = np.where(failed, rs["status"], np.where(converged, 0, out["status"]))
-        keep = jnp.asarray(pending)
-        final = jax.tree_util.tree_map(
-            lambda a, b: jnp.where(keep.reshape(keep.shape + (1,) * (a.ndim - 1)), a, b),
-            r.final_state, final)
+        final = select_cells(jnp.asarray(pending), r.final_state, final)
         pending = pending & ok & ~converged
         y = with_dynamical(y, flatten_dynamical(y) + jnp.where(jnp.asarray(pending)[:, None],
                                                               step, 0.0))
