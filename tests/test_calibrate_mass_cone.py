@@ -103,7 +103,7 @@ def test_mass_cone_recovery_lbfgs(fitted):
     evals = np.linalg.eigvalsh(H)
     print(f"\nL-BFGS: {res.n_evals} evaluations, {wall:.1f} s, loss {res.loss:.4e}, "
           f"e_rms {res.e_rms:.3f} %, e_m {res.e_m:.3f} %")
-    print(f"Gauss-Newton curvature eigenvalues (log space): "
+    print("Gauss-Newton curvature eigenvalues (log space): "
           + ", ".join(f"{e:.2e}" for e in evals))
     identified, flat = [], []
     for (name, v), s in zip(truth.items(), sigma):

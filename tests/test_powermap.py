@@ -138,7 +138,10 @@ def test_cli_killed_then_resumed_matches_uninterrupted(model, tmp_path, capsys):
     parts = tmp_path / "map.zarr.parts"
     cmd = [sys.executable, "-m", "jaxdea.cli", "powermap", CONFIG, *CLI_GRID, "--out",
            str(store), "--no-progress"]
-    env = _env(JAX_COMPILATION_CACHE_DIR=str(tmp_path / "jax_cache"))
+    # one CPU device, as the in-process reference (the CLI would use one per core, and a
+    # sharded program rounds differently)
+    env = _env(JAX_COMPILATION_CACHE_DIR=str(tmp_path / "jax_cache"),
+               XLA_FLAGS="--xla_force_host_platform_device_count=1")
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     t0 = time.time()
     try:

@@ -12,6 +12,8 @@ Public API (everything else may change):
 - building blocks: :class:`GentMaxwell`, :class:`ConeMembrane`, :class:`SCDEA_LS`,
   :class:`DCDEA_RR`, :class:`DCDEA_LS`, :class:`SquareWave`, :class:`LinearViscous`,
   :class:`LawsonRK4`, :func:`run_protocol`, :class:`StepControl`.
+- :func:`use_cpu_cores`: one JAX CPU device per core (call first; sweeps and maps then run
+  on every core). :data:`EARLY_EXIT`: the paper protocol's early-exit tolerance.
 
 float64 is switched on at import (the RC and mechanical scales differ by ~1e3, and the energy
 accumulators difference large numbers).
@@ -30,7 +32,8 @@ from .protocol import STATUS, CycleMetrics, StepControl, run_protocol  # noqa: E
 from .signals import SquareWave  # noqa: E402
 from .simulate import simulate  # noqa: E402
 from .solver import LawsonRK4, SemilinearTerm  # noqa: E402
-from .sweep import SweepError, make_loadings, sweep  # noqa: E402
+from .sweep import EARLY_EXIT, SweepError, make_loadings, sweep  # noqa: E402
+from .sharding import use_cpu_cores  # noqa: E402
 from .powermap import powermap  # noqa: E402
 from .actuators.rotary import RotaryDCDEA, rotary_study  # noqa: E402
 from .caldata import DataError, FrequencyResponse, TimeSeries, load_data  # noqa: E402
@@ -52,4 +55,5 @@ __all__ = [
     "DCDEA_RR", "GentMaxwell", "LawsonRK4", "LinearViscous", "Loading", "Model", "SCDEA_LS",
     "STATUS", "SemilinearTerm", "SquareWave", "StepControl", "SweepError", "load_config",
     "make_loadings", "model_from_dict", "powermap", "run_protocol", "simulate", "sweep",
+    "EARLY_EXIT", "use_cpu_cores",
 ]

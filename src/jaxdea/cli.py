@@ -114,7 +114,7 @@ def _sweep(args) -> int:
     ds = jaxdea.sweep(model, mass=args.mass, damping=args.damping, freq=freq, drive=args.drive,
                       phase=args.phase, cycles=args.cycles, average=args.average,
                       control=control, protocol=args.protocol, direction=args.direction,
-                      tol=args.tol)
+                      tol=args.tol, early_exit=args.early_exit)
     write_dataset(ds, out)
     i = int(np.argmax(ds["P_out"].values))
     bad = int((ds["status"] != 0).sum())
@@ -150,7 +150,8 @@ def _powermap(args) -> int:
     ds = jaxdea.powermap(model, mass=mass, damping=damping, freq=freq, phase=phase,
                          drive=args.drive, protocol=args.protocol, cycles=args.cycles,
                          average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
-                         direction=args.direction, tol=args.tol, chunk_cells=args.chunk,
+                         direction=args.direction, tol=args.tol, early_exit=args.early_exit,
+                         chunk_cells=args.chunk,
                          store=out, resume=args.resume, progress=not args.no_progress)
     print(f"chunks: {ds.attrs['chunks_computed']} computed, {ds.attrs['chunks_reused']} reused",
           flush=True)
@@ -203,6 +204,20 @@ def _protocol_args(p: argparse.ArgumentParser) -> None:
                    help="continuation: up (forward, as paper 000) or down the f axis")
     p.add_argument("--tol", type=float, default=1e-6,
                    help="periodic: tolerance on the scaled periodicity residual, (0, 1)")
+    p.add_argument("--early-exit", type=_early_exit, default=1e-10, metavar="TOL|off",
+                   help="paper/continuation: stop a cell once its trajectory is periodic to TOL "
+                        "(its remaining cycles would repeat the last one; default 1e-10); "
+                        "'off' runs every cell for all N cycles")
+
+
+def _early_exit(text: str) -> float | None:
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--early-exit must be a tolerance in (0, 1) or 'off', got {text!r}") from None
 
 
 def _lin_points(text: str, name: str) -> np.ndarray:
@@ -321,7 +336,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from jaxdea.config import ConfigError
+    from jaxdea.sharding import use_cpu_cores
     from jaxdea.sweep import SweepError
+
+    if argv is None:  # the command line (not a call from Python, whose JAX may be in use)
+        use_cpu_cores()  # one JAX device per core: batched runs shard over all of them
 
     try:
         return args.func(args)

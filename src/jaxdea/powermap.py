@@ -38,13 +38,12 @@ from .actuators.base import Loading
 from .config import ConfigError, Model
 from .mapstore import Parts, check_store_path, jaxdea_version, write_store
 from .payloads import LinearViscous
-from .protocol import STATUS, StepControl, run_protocol
+from .protocol import STATUS, StepControl
 from .sharding import cell_sharded
 from .signals import SquareWave
-from .steady import periodic_cells
-from .sweep import (DIRECTIONS, DRIVES, PROTOCOLS, VARIABLES, SweepError, _finite_array,
-                    chain_successors, check_protocol, default_lanes, drive_pattern, run_cells,
-                    to_dataset)
+from .sweep import (DIRECTIONS, DRIVES, EARLY_EXIT, PROTOCOLS, VARIABLES, SweepError,
+                    _engine, _finite_array, chain_successors, check_early_exit, check_protocol,
+                    default_lanes, drive_pattern, run_cells, to_dataset)
 #: Default chunk size per device: large enough that the lane pool stays busy and the slowest
 #: (lowest-frequency) cell is not the critical path, small enough for a fine progress bar.
 CHUNK_PER_DEVICE = 1024
@@ -140,34 +139,21 @@ class _Grid:
         )
 
 
-def _engine(actuator, loadings, successor, *, cycles, average, control, lanes):
-    """The lane engine on one device's cells (``successor``: local indices)."""
-    res = run_protocol(actuator, loadings, cycles=cycles, average=average, control=control,
-                       lanes=lanes, successor=successor)
-    return {k: getattr(res, k) for k in VARIABLES}
-
-
 def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, successor, cycles,
-               average, control, tol) -> dict[str, np.ndarray]:
+               average, control, tol, early_exit) -> dict[str, np.ndarray]:
     """One chunk; ``successor`` (continuation) is the pattern of one device's slice."""
     n = loadings.drive.frequency.shape[0]
-    lanes = default_lanes(n // len(devices))
-    if protocol == "periodic":
-        res = periodic_cells(model.actuator, loadings, tol=tol, control=control, lanes=lanes,
-                             devices=devices)
-        out = {k: getattr(res, k) for k in VARIABLES}
-    elif len(devices) == 1:  # the same compiled call as jaxdea.sweep of n cells
-        res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
-                        protocol=protocol, successor=successor)
-        out = {k: getattr(res, k) for k in VARIABLES}
-    else:
+    if protocol == "continuation" and len(devices) > 1:  # whole chains per device slice
         local = n // len(devices)
-        succ = np.tile(successor if successor is not None else np.full(local, local),
-                       len(devices))
-        out = cell_sharded(_engine, devices)(
-            model.actuator, loadings, jnp.asarray(succ, jnp.int32), cycles=cycles,
-            average=average, control=control, lanes=lanes)
-    return {k: np.asarray(v) for k, v in out.items()}
+        res = cell_sharded(_engine, devices)(
+            model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
+            cycles=cycles, average=average, control=control, lanes=default_lanes(local),
+            early_exit=early_exit)
+    else:  # paper and periodic: dealt over the devices; continuation on one device
+        res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
+                        protocol=protocol, successor=successor, tol=tol,
+                        early_exit=early_exit, devices=devices)
+    return {k: np.asarray(getattr(res, k)) for k in VARIABLES}
 
 
 def _reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
@@ -188,7 +174,7 @@ def _reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
 def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
              protocol: str = "paper", cycles: int = 100, average: int = 5,
              direction: str = "forward", tol: float = 1e-6,
-             control: StepControl = StepControl(), chunk_cells: int | None = None,
+             early_exit: float | None = EARLY_EXIT, control: StepControl = StepControl(), chunk_cells: int | None = None,
              store: str | os.PathLike | None = None, resume: bool = False,
              progress: bool = True) -> xr.Dataset:
     """Power map of ``model`` over payload mass x damping x frequency (x phase).
@@ -200,6 +186,10 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     final state (``direction="forward"``: up the f axis, as paper 000 swept; ``"backward"``:
     down it; compare both to expose jumps). ``"periodic"``: periodic steady state per cell
     to tolerance ``tol`` (:mod:`jaxdea.steady`; ``cycles``/``average`` unused).
+    ``early_exit``: paper and continuation cells stop once periodic to this tolerance
+    (:data:`jaxdea.sweep.EARLY_EXIT`; ``None``: every cell runs all ``cycles``).
+    The cells of each chunk are split over all JAX devices (:func:`jaxdea.use_cpu_cores`
+    makes one per CPU core; the CLI does that).
     ``chunk_cells``: cells per compiled call (rounded up to a multiple of the device count,
     and for continuation to whole frequency chains per device; default 1024 per device). ``store`` (``.zarr`` or ``.nc``): write each finished chunk to
     ``<store>.parts`` and the final Dataset to ``store``; ``resume=True`` reuses the finished
@@ -238,6 +228,8 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     phase_values = axes.get("phase", np.zeros(1))
     patterns = [drive_pattern(model, drive, float(p)) for p in phase_values]
     check_protocol(cycles, average)
+    check_early_exit(early_exit)
+    early_exit = None if early_exit is None or protocol == "periodic" else float(early_exit)
     _check_control(control)
     if chunk_cells is not None and (isinstance(chunk_cells, bool) or not isinstance(
             chunk_cells, (int, np.integer)) or chunk_cells < 1):
@@ -268,7 +260,8 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     attrs = dict(model=model.name, drive=drive, protocol=protocol, cycles=int(cycles),
                  average=int(average),
                  direction=direction if protocol == "continuation" else None,
-                 tol=float(tol) if protocol == "periodic" else None, rtol=float(control.rtol), dt_max=float(control.dt_max),
+                 tol=float(tol) if protocol == "periodic" else None, early_exit=early_exit,
+                 rtol=float(control.rtol), dt_max=float(control.dt_max),
                  max_steps=int(control.max_steps), voltage=float(model.voltage),
                  duty=float(model.duty), jaxdea_version=jaxdea_version())
     if drive == "both" and phase is None:
@@ -300,7 +293,8 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
                 idx = np.minimum(np.arange(lo, lo + chunk), hi - 1)  # pad: repeat last cell
                 out = _run_chunk(model, grid.loadings(idx), devices, protocol=protocol,
                                  successor=successor, cycles=int(cycles),
-                                 average=int(average), control=control, tol=float(tol))
+                                 average=int(average), control=control, tol=float(tol),
+                                 early_exit=early_exit)
                 got = {k: v[: hi - lo] for k, v in out.items()}
                 if parts is not None:
                     parts.save(i, got)

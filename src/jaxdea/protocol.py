@@ -25,6 +25,10 @@ Beyond "N cycles from rest" the same engine runs the other protocols' building b
 - ``active``: run only these cells (the others are skipped at no cost);
 - ``settle``: stop a cell as soon as its one-period map has converged (residual below
   ``settle``, after correcting for the observed contraction rate), metrics over its last cycle.
+  With ``require_settled=False`` this is the papers' protocol with an early exit: a cell
+  whose trajectory is already periodic to ``settle`` would only repeat its last cycle until
+  cycle N, so it stops there (a cell that never settles runs all N cycles and averages the
+  last k as usual).
 
 Every cell also reports its periodicity residual: the scaled max-norm of the change of the
 dynamical state over the last cycle (:func:`periodicity_residual`).
@@ -132,7 +136,8 @@ def hermite_extrema(x0, v0, x1, v1, h):
     return jnp.min(cand, axis=0), jnp.max(cand, axis=0)
 
 
-_GL_X, _GL_W = (jnp.asarray(a) for a in __import__("numpy").polynomial.legendre.leggauss(8))
+# numpy constants: importing jaxdea must not start a JAX backend (see jaxdea.use_cpu_cores)
+_GL_X, _GL_W = __import__("numpy").polynomial.legendre.leggauss(8)
 
 
 def returned_charge(q0, i0, q1, i1, h, kappa, q_inf):
@@ -194,6 +199,7 @@ class _Lane(eqx.Module):
     h: Array  # proposed next step, s
     steps: Array
     window: ConeState  # state at the start of the averaging window
+    wcycle: Array  # completed cycles when the averaging window started
     prev: ConeState  # state at the start of the current cycle
     res: Array  # periodicity residual of the last completed cycle
     ratio: Array  # residual of the last cycle over that of the one before
@@ -205,9 +211,9 @@ class _Lane(eqx.Module):
     done: Array
 
 
-def _window_metrics(lane: _Lane, average: int, cycles: int, settle):
+def _window_metrics(lane: _Lane, cycles: int, settle, require_settled: bool):
     w, y = lane.window, lane.y
-    span = average / lane.loading.drive.frequency
+    span = (lane.cycle - lane.wcycle) / lane.loading.drive.frequency
     p_out = (y.payload_work - w.payload_work) / span
     e_in = y.energy_in - w.energy_in
     p_in_signed = jnp.sum(e_in) / span
@@ -216,7 +222,7 @@ def _window_metrics(lane: _Lane, average: int, cycles: int, settle):
     finite = _all_finite(y)
     settled = False if settle is None else _settled(lane.res, lane.rate, settle)
     unfinished = (lane.cycle < cycles) & ~settled  # stopping early once settled is no failure
-    ok = 0 if settle is None else jnp.where(settled, 0, 4)
+    ok = jnp.where(settled, 0, 4) if settle is not None and require_settled else 0
     status = jnp.where(
         ~finite, 2, jnp.where(lane.lockup, 1, jnp.where(unfinished, 3, ok))
     ).astype(jnp.int32)
@@ -272,6 +278,7 @@ def run_protocol(
     successor: Array | None = None,
     active: Array | None = None,
     settle: float | None = None,
+    require_settled: bool = True,
 ) -> CycleMetrics:
     """Run ``cycles`` periods from rest for every cell of ``loadings`` (leading axis = cells)
     and average the last ``average`` periods. Jittable; ``model`` is shared by all cells.
@@ -286,8 +293,9 @@ def run_protocol(
     start from ``initial``. ``active``: bool per cell; inactive cells are not run and their
     outputs are zeros. ``settle``: if given, a cell stops at the first cycle end where its
     periodicity residual (corrected for the observed contraction) is below ``settle``; its
-    metrics are over that last cycle (needs ``average == 1``), and a cell that reaches
-    ``cycles`` without settling gets status 4.
+    metrics are then over that last cycle. A cell that reaches ``cycles`` without settling
+    averages its last ``average`` cycles and gets status 4 if ``require_settled`` (periodic
+    steady states), else the ordinary status (the papers' protocol with an early exit).
 
     ``cycles`` and ``average`` may be integer arrays (traced under jit: one compiled engine
     for every cycle count; their range is then the caller's to check).
@@ -299,9 +307,6 @@ def run_protocol(
             )
     elif not (hasattr(cycles, "dtype") and hasattr(average, "dtype")):
         raise ValueError(f"cycles and average must be integers, got {cycles!r}, {average!r}")
-    if settle is not None and average != 1:
-        raise ValueError(f"settle mode averages over the last cycle: need average=1, "
-                         f"got {average}")
     n_cells = jax.tree_util.tree_leaves(loadings)[0].shape[0]
     n_lanes = int(min(n_cells, lanes or 32))
     solver = LawsonRK4()
@@ -339,6 +344,7 @@ def run_protocol(
             h=jnp.minimum(control.dt_max, period / 200.0),
             steps=jnp.zeros(n_lanes, jnp.int32),
             window=y,
+            wcycle=jnp.zeros(n_lanes, jnp.int32),
             prev=y,
             res=jnp.full(n_lanes, jnp.inf),
             ratio=jnp.ones(n_lanes),
@@ -399,8 +405,9 @@ def run_protocol(
             start = wrap & (cycle == cycles - average)
             settled = jnp.zeros_like(wrap)
         else:  # the window is the cycle just finished; restart it unless the cell is done
+            # or the last `average` cycles of the budget have begun
             settled = wrap & (cycle >= 2) & _settled(res, rate, settle)
-            start = wrap & ~settled & (cycle < cycles)  # keep the last cycle at the budget
+            start = wrap & ~settled & (cycle <= cycles - average)
         # charge pushed back into the source during the step (Phi is constant within a step)
         mem = model.membrane
         phi = lane.loading.drive(t0 + 0.5 * h)
@@ -415,6 +422,7 @@ def run_protocol(
             xmax = jnp.where(start, -jnp.inf, xmax)
             back = jnp.where(start, 0.0, back)
         window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), y, lane.window)
+        wcycle = jnp.where(start, cycle, lane.wcycle)
 
         margin = jnp.min(model.membrane.gent_margin(model.deflections(y.q), y.xi_m, y.xi_el))
         lockup = lane.lockup | (active & ~(margin > 0))
@@ -425,10 +433,10 @@ def run_protocol(
         done = (lane.done | (cycle >= cycles) | lockup | blown | (steps >= control.max_steps)
                 | settled)
         return eqx.tree_at(
-            lambda s: (s.y, s.cycle, s.u, s.h, s.steps, s.window, s.prev, s.res, s.ratio,
-                       s.rate, s.back, s.xmin, s.xmax, s.lockup, s.done),
-            lane, (y, cycle, u, h_next, steps, window, prev, res, ratio, rate, back, xmin,
-                   xmax, lockup, done),
+            lambda s: (s.y, s.cycle, s.u, s.h, s.steps, s.window, s.wcycle, s.prev, s.res,
+                       s.ratio, s.rate, s.back, s.xmin, s.xmax, s.lockup, s.done),
+            lane, (y, cycle, u, h_next, steps, window, wcycle, prev, res, ratio, rate, back,
+                   xmin, xmax, lockup, done),
         )
 
     out = dict(
@@ -442,7 +450,8 @@ def run_protocol(
 
     def harvest(out, lane: _Lane, finished: Array):
         """Write the finished lanes' results into the outputs (other lanes write nowhere)."""
-        metrics = jax.vmap(lambda ln: _window_metrics(ln, average, cycles, settle))(lane)
+        metrics = jax.vmap(lambda ln: _window_metrics(ln, cycles, settle, require_settled))(
+            lane)
         metrics["final_state"] = lane.y
         target = jnp.where(finished, lane.job, n_cells)  # index n_cells is dropped
         return jax.tree_util.tree_map(

@@ -8,6 +8,7 @@ split along its leading (cell) axis. Each device then runs its own lane pool on 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 
 import equinox as eqx
@@ -42,3 +43,21 @@ def cell_sharded(fn: Callable, devices: tuple) -> Callable:
 
         _CACHE[key] = eqx.filter_jit(run)
     return _CACHE[key]
+
+
+def use_cpu_cores(n: int | None = None) -> int:
+    """Make the CPU backend expose ``n`` devices (default: one per core) and return the count.
+
+    XLA runs a single CPU device's batched elementwise work on one core; with one device per
+    core, :func:`cell_sharded` (hence sweeps, power maps and periodic stages) runs a slice of
+    the cells on every core. Call it before JAX computes anything (the CLI does this at start);
+    afterwards, or when ``XLA_FLAGS`` already sets ``--xla_force_host_platform_device_count``,
+    it changes nothing and returns the CPU device count in effect.
+    """
+    n = int(n or os.cpu_count() or 1)
+    if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+        try:
+            jax.config.update("jax_num_cpu_devices", n)
+        except RuntimeError:  # a backend has started: too late, keep what it has
+            pass
+    return len(jax.devices("cpu"))

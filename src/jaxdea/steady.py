@@ -48,7 +48,6 @@ def flatten_dynamical(y: ConeState) -> jax.Array:
 def with_dynamical(y: ConeState, flat: jax.Array) -> ConeState:
     """``y`` with its dynamical states replaced by the vectors ``flat`` (inverse of
     :func:`flatten_dynamical`)."""
-    lead = y.q.shape[:-1]
     out, at = [], 0
     for k in DYNAMICAL:
         leaf = getattr(y, k)

@@ -19,6 +19,7 @@ from .actuators.base import Loading
 from .config import ConfigError, Model
 from .payloads import LinearViscous
 from .protocol import STATUS, CycleMetrics, StepControl, run_protocol
+from .sharding import cell_sharded
 from .signals import SquareWave
 
 DRIVES = ("A", "B", "both")
@@ -120,29 +121,80 @@ def check_protocol(cycles: int, average: int) -> None:
         raise SweepError(f"average = {average} must be <= cycles = {cycles}")
 
 
+#: Early exit of the paper and continuation protocols: a cell stops once its trajectory is
+#: periodic to this scaled residual (corrected for the observed contraction per cycle), since
+#: its remaining cycles would repeat the last one; its metrics are then over that last cycle.
+#: At 1e-10 the metrics equal the full N-cycle run's to ~1e-9 relative (tests/test_protocols),
+#: far below the integration error. ``None`` runs every cell for all N cycles.
+EARLY_EXIT = 1e-10
+
+
+def check_early_exit(early_exit) -> None:
+    if early_exit is None:
+        return
+    if isinstance(early_exit, bool) or not isinstance(early_exit, (int, float, np.floating)) \
+            or not (math.isfinite(early_exit) and 0 < early_exit < 1):
+        raise SweepError(f"early_exit = {early_exit!r} must be None (run every cycle) or a "
+                         "tolerance in the allowed range (0, 1)")
+
+
+def _engine(actuator, loadings, successor, *, cycles, average, control, lanes, early_exit):
+    """The lane engine on one device's cells from rest (``successor``: local indices)."""
+    return run_protocol(actuator, loadings, cycles=cycles, average=average, control=control,
+                        lanes=lanes, successor=successor, settle=early_exit,
+                        require_settled=False)
+
+
+def dealt(n: int, n_dev: int) -> np.ndarray:
+    """Cell order that deals ``n`` cells round-robin to ``n_dev`` equal device slices (padded
+    by repeating the last cell): every device gets the same mix of frequencies."""
+    local = -(-n // n_dev)
+    return np.minimum(np.arange(local * n_dev).reshape(local, n_dev).T.ravel(), n - 1)
+
+
 def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: int = 5,
               control: StepControl = StepControl(), lanes: int | None = None,
               protocol: str = "paper", successor=None, tol: float = 1e-6,
-              initial=None) -> CycleMetrics:
+              initial=None, early_exit: float | None = EARLY_EXIT,
+              devices: tuple | None = None) -> CycleMetrics:
     """Run a protocol on a flat batch of cells (compiled calls cached per shape).
 
     ``"paper"``: ``cycles`` from rest, mean of the last ``average``. ``"continuation"``: the
     same, but cell ``i`` hands its final state to cell ``successor[i]`` (``n`` = none).
     ``"periodic"``: :func:`jaxdea.steady.periodic_cells` with tolerance ``tol`` (``cycles``
     and ``average`` unused). ``initial``: start states (leading axis = cells; default rest).
+    ``early_exit``: :data:`EARLY_EXIT` (paper and continuation). ``devices``: JAX devices to
+    split the cells over (default: the first device only); a paper run from rest deals its
+    cells round-robin over them, the other runs use the first device only (a continuation
+    chain is sequential).
     """
     check_protocol(cycles, average)
+    check_early_exit(early_exit)
+    early_exit = None if early_exit is None else float(early_exit)
     if not isinstance(model, Model):
         raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
     if protocol not in PROTOCOLS:
         raise SweepError(f"protocol = {protocol!r} must be one of {', '.join(PROTOCOLS)}")
     n = loadings.drive.frequency.shape[0]
-    lanes = lanes or default_lanes(n)
+    devices = tuple(devices or jax.devices()[:1])
     if protocol == "periodic":
         from .steady import periodic_cells
-        return periodic_cells(model.actuator, loadings, tol=tol, control=control, lanes=lanes)
+        lanes = lanes or default_lanes(-(-n // len(devices)))
+        order = dealt(n, len(devices))
+        res = periodic_cells(model.actuator, _take(loadings, order), tol=tol, control=control,
+                             lanes=lanes, devices=devices)
+        return _take(res, _undeal(n, len(devices)))
     if protocol == "continuation" and successor is None:
         raise SweepError("protocol='continuation' needs the successor of each cell")
+    if protocol == "paper" and initial is None and len(devices) > 1:
+        local = -(-n // len(devices))
+        res = cell_sharded(_engine, devices)(
+            model.actuator, _take(loadings, dealt(n, len(devices))),
+            jnp.full(local * len(devices), local, jnp.int32), cycles=int(cycles),
+            average=int(average), control=control, lanes=lanes or default_lanes(local),
+            early_exit=early_exit)
+        return _take(res, _undeal(n, len(devices)))
+    lanes = lanes or default_lanes(n)
     if protocol == "paper" or successor is None:
         successor = np.full(n, n)
     # one compiled engine for paper and continuation runs of any cycle count: the start
@@ -151,7 +203,20 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
         initial = _rest_states(model.actuator, n)
     return _run(model.actuator, loadings, cycles=jnp.asarray(cycles, jnp.int32),
                 average=jnp.asarray(average, jnp.int32), control=control, lanes=lanes,
-                initial=initial, successor=jnp.asarray(successor, jnp.int32))
+                initial=initial, successor=jnp.asarray(successor, jnp.int32),
+                settle=early_exit, require_settled=False)
+
+
+def _take(tree, idx: np.ndarray):
+    """Cells ``idx`` (leading axis) of every leaf of ``tree``."""
+    return jax.tree_util.tree_map(lambda a: a[idx], tree)
+
+
+def _undeal(n: int, n_dev: int) -> np.ndarray:
+    """Positions in :func:`dealt` order of the cells ``0..n-1``."""
+    local = -(-n // n_dev)
+    i = np.arange(n)
+    return (i % n_dev) * local + i // n_dev
 
 
 def chain_successors(n_f: int, n_rest: int = 1, direction: str = "forward",
@@ -181,7 +246,7 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
           phase: float = 0.0, cycles: int = 100, average: int = 5,
           control: StepControl = StepControl(), lanes: int | None = None,
           protocol: str = "paper", direction: str = "forward",
-          tol: float = 1e-6) -> xr.Dataset:
+          tol: float = 1e-6, early_exit: float | None = EARLY_EXIT) -> xr.Dataset:
     """Frequency response of ``model``.
 
     ``mass`` (kg) and ``damping`` (N s/m) of the payload, ``freq`` (Hz, 1-D), ``drive`` one of
@@ -191,7 +256,10 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
     the previous one's final state, in ``freq`` order (``direction="backward"``: from the
     highest frequency down) — paper 000's forward sweep, and the backward one that exposes
     jumps. ``"periodic"``: the periodic steady state to tolerance ``tol``
-    (:mod:`jaxdea.steady`). Returns a Dataset with dimension ``f`` and variables P_out, P_in,
+    (:mod:`jaxdea.steady`). ``early_exit``: paper and continuation cells stop once periodic
+    to this tolerance (:data:`EARLY_EXIT`; ``None``: every cell runs all ``cycles``). The
+    cells are split over all JAX devices (:func:`jaxdea.use_cpu_cores` makes one per CPU
+    core). Returns a Dataset with dimension ``f`` and variables P_out, P_in,
     P_in_signed, efficiency, amplitude, v_rms, status, steps, residual, cycles_run (units in
     attrs).
     """
@@ -201,6 +269,7 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
         raise SweepError(f"direction = {direction!r} must be one of {', '.join(DIRECTIONS)}")
     if not (math.isfinite(tol) and 0 < tol < 1):
         raise SweepError(f"tol = {tol!r} is outside the allowed range (0, 1)")
+    check_early_exit(early_exit)
     freq = _finite_array("freq", freq, positive=True)
     if freq.ndim != 1:
         raise SweepError(f"freq must be 1-D, got shape {freq.shape}")
@@ -210,12 +279,15 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
     loadings = make_loadings(model, mass, damping, freq, drive, phase)
     successor = chain_successors(freq.size, direction=direction)
     res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
-                    lanes=lanes, protocol=protocol, successor=successor, tol=tol)
+                    lanes=lanes, protocol=protocol, successor=successor, tol=tol,
+                    early_exit=early_exit, devices=tuple(jax.devices()))
     return to_dataset(res, {"f": freq}, attrs=dict(
         model=model.name, drive=drive, phase=float(phase), mass=float(mass),
         damping=float(damping), protocol=protocol,
         direction=direction if protocol == "continuation" else None,
         tol=float(tol) if protocol == "periodic" else None,
+        early_exit=(float(early_exit) if early_exit is not None and protocol != "periodic"
+                    else None),
         cycles=int(cycles), average=int(average),
         rtol=control.rtol, voltage=float(model.voltage), duty=float(model.duty),
     ))
