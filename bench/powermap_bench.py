@@ -8,7 +8,7 @@ same process. Prints trajectories/s for both, the ratio, peak memory (RSS) and t
 time of the full 50 x 50 x 996 map on this machine.
 
 The map runs on one JAX device per CPU core with the paper protocol's default early exit (a
-cell stops once periodic to 1e-10, jaxdea.EARLY_EXIT); the LSODA cells (all 100 cycles)
+cell stops once periodic to 1e-8, jaxdea.EARLY_EXIT); the LSODA cells (all 100 cycles)
 check it. The projection interpolates the measured steps per cell over f onto the full map's
 0.2 Hz grid and scales the measured time by the step count.
 

@@ -3,7 +3,7 @@
 Paper 000 protocol: 996 frequencies 1-200 Hz (0.2 Hz step), 100 cycles from rest each,
 mean of the last 5; M = 2 g, c = 0.1 N s/m, membrane A driven. jaxdea runs the whole sweep
 as one jitted call over one JAX device per CPU core (compile time reported apart), with its
-default early exit (a cell stops once periodic to 1e-10; jaxdea.EARLY_EXIT) and, for
+default early exit (a cell stops once periodic to 1e-8; jaxdea.EARLY_EXIT) and, for
 comparison, strictly (every cell all 100 cycles). The baseline is the independent scipy
 transcription (tests/scipy_reference.py, LSODA, rtol 1e-8 as in the shared performance
 reference) on frequencies sampled at the centres of equal strata of the sweep, so their

@@ -86,6 +86,22 @@ def test_flat_direction_is_reported(toy_data):
     assert "flat" in res.summary()
 
 
+def test_auto_jacobian_mode_is_reverse_for_time_series(toy_data):
+    """jac='auto' takes reverse mode for a time series (diffrax's checkpointed adjoint has no
+    forward mode), for the gradient and for the curvature's residual Jacobian (jacrev); both
+    equal forward mode's on a model that has both."""
+    kw = dict(bounds=TOY_BOUNDS, predict=toy_predict, maxiter=3)
+    start = toy(k=4.5, c=0.9, a=6e-3)
+    auto = calibrate(start, toy_data, ["k", "c", "a"], **kw)
+    fwd = calibrate(start, toy_data, ["k", "c", "a"], jac="fwd", **kw)
+    assert "jacrev_z" in auto.objective._cache and "jac_z" not in auto.objective._cache
+    np.testing.assert_allclose(auto.curvature, fwd.curvature, rtol=1e-8)
+    for n in ("k", "c", "a"):
+        assert auto.params[n] == pytest.approx(fwd.params[n], rel=1e-8)
+    with pytest.raises(CalibrationError, match="jac = 'both' must be 'auto', 'fwd' or 'rev'"):
+        calibrate(start, toy_data, ["k"], predict=toy_predict, jac="both")
+
+
 def test_error_metrics_paper_definitions():
     zm = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
     ze = zm + np.array([0.0, 0.1, -0.2, 0.0, 0.1])

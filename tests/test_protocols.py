@@ -161,7 +161,7 @@ def test_periodic_rejects_bad_settings(model):
 
 def test_paper_early_exit_equals_the_full_run(model):
     """The papers' protocol stops a cell once its trajectory is periodic to EARLY_EXIT (the
-    remaining cycles would repeat it): the metrics equal the full 100-cycle run's to ~1e-9.
+    remaining cycles would repeat it): the metrics equal the full 100-cycle run's to ~1e-7.
     A lightly damped resonance that has not converged by cycle 100 runs every cycle and is
     unchanged (same last-5 window)."""
     freq = np.array([5.0, 30.0, 85.0])
@@ -174,7 +174,7 @@ def test_paper_early_exit_equals_the_full_run(model):
     assert np.asarray(early.steps)[0] < 0.2 * np.asarray(full.steps)[0]
     for k in ("P_out", "P_in", "P_in_signed", "amplitude", "v_rms", "efficiency"):
         a, b = np.asarray(getattr(early, k)), np.asarray(getattr(full, k))
-        np.testing.assert_allclose(a[:2], b[:2], rtol=1e-8, err_msg=k)
+        np.testing.assert_allclose(a[:2], b[:2], rtol=1e-6, err_msg=k)
         np.testing.assert_allclose(a[2], b[2], rtol=1e-13, err_msg=k)
     with pytest.raises(jaxdea.SweepError, match="early_exit = 0 must be None"):
         jaxdea.sweep(model, mass=1e-3, damping=0.1, freq=FREQ, early_exit=0)

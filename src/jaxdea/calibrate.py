@@ -38,10 +38,12 @@ Methods
   scipy rather than a hand-written DE (or evosax, not a dependency): it is maintained,
   already a dependency, and its ``vectorized=True`` mode hands us the population at once.
 
-Gradients are forward mode by default (``jac="fwd"``: ``jax.jacfwd`` of the residual vector,
-one pass with one tangent per parameter). That works through ``lax.while_loop`` and gives the
-residual Jacobian the curvature estimate needs. ``jac="rev"`` uses reverse mode
-(``value_and_grad``), cheaper with many parameters.
+Gradients (``jac="auto"``, the default) are forward mode for frequency responses
+(``jax.jacfwd`` of the residual vector, one pass with one tangent per parameter: it goes
+through the sweep engine's ``lax.while_loop``, which reverse mode cannot) and reverse mode for
+time series (``value_and_grad``: diffrax's checkpointed adjoint is a ``custom_vjp``, which
+forward mode cannot go through). The residual Jacobian of the curvature estimate and of
+``"lm"`` is built the same way (``jacfwd`` or ``jacrev``). ``jac="fwd"``/``"rev"`` force one.
 
 Loss
 ----
@@ -489,6 +491,8 @@ class _Objective:
                 f = jax.jit(rz)
             elif name == "jac_z":  # (J, r) in one forward pass with one tangent per parameter
                 f = jax.jit(jax.jacfwd(lambda z: (rz(z), rz(z)), has_aux=True))
+            elif name == "jacrev_z":  # (J, r) by reverse mode, one cotangent per residual
+                f = jax.jit(jax.jacrev(lambda z: (rz(z), rz(z)), has_aux=True))
             elif name == "vg_z":
                 f = jax.jit(jax.value_and_grad(lambda z: jnp.sum(rz(z) ** 2)))
             elif name == "loss_u_batch":
@@ -523,6 +527,10 @@ class _Objective:
 
     def theta_of_u(self, u) -> np.ndarray:
         return np.array([float(p.theta_of_u(u[i])) for i, p in enumerate(self.params)])
+
+    def jacobian(self, z, jac: str):
+        """``(J, r)``: residual Jacobian in z and the residuals, by ``jac`` mode."""
+        return self.fn("jac_z" if jac == "fwd" else "jacrev_z")(jnp.asarray(z))
 
     def value_and_grad(self, z, jac: str):
         z = jnp.asarray(z, dtype=jnp.float64)
@@ -573,9 +581,9 @@ class CalibrationResult:
         return "\n".join(lines)
 
 
-def _curvature(obj: _Objective, z, params, theta, loss, flat_threshold):
+def _curvature(obj: _Objective, z, params, theta, loss, flat_threshold, jac):
     """Gauss-Newton curvature in u, covariance in theta and the flat parameters."""
-    J, r = obj.fn("jac_z")(jnp.asarray(z))
+    J, r = obj.jacobian(z, jac)
     du = np.diag(np.asarray(obj.fn("du_dz")(jnp.asarray(z))))
     Jz = np.asarray(J)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -601,7 +609,7 @@ def _curvature(obj: _Objective, z, params, theta, loss, flat_threshold):
 
 def calibrate(model, data: Data, fit, *, bounds=None, method: str = "lbfgs",
               loss: str = "mse", seed: int = 0, predict: Callable | None = None,
-              transforms=None, jac: str = "fwd", maxiter: int | None = None,
+              transforms=None, jac: str = "auto", maxiter: int | None = None,
               learning_rate: float = 0.05, tol: float = 1e-10, de_options=None,
               curvature: bool = True, flat_threshold: float = 0.5,
               verbose: bool = False) -> CalibrationResult:
@@ -610,8 +618,9 @@ def calibrate(model, data: Data, fit, *, bounds=None, method: str = "lbfgs",
     ``bounds``: ``{name: (lower, upper)}`` in the parameter's units (needed by ``"de"``);
     ``method``: ``"lbfgs"`` | ``"adam"`` | ``"lm"`` | ``"de"``; ``loss``: ``"mse"`` |
     ``"relative"`` | ``"log"``; ``predict(model, data) -> {channel: array}`` (default from
-    :func:`default_predict`); ``transforms``: ``{name: "log" | "linear"}``; ``jac``: ``"fwd"``
-    or ``"rev"``; ``maxiter``: iterations (generations for DE; default 200 / 2000 / 100 / 115
+    :func:`default_predict`); ``transforms``: ``{name: "log" | "linear"}``; ``jac``: ``"auto"``
+    (forward mode for frequency responses, reverse mode for time series), ``"fwd"`` or
+    ``"rev"``; ``maxiter``: iterations (generations for DE; default 200 / 2000 / 100 / 115
     for lbfgs / adam / lm / de); ``learning_rate``: Adam's step in z; ``de_options``: overrides
     of :data:`DE_PAPER` and of scipy's ``tol``/``atol``/``init``; ``flat_threshold``: a relative
     1-sigma above which a parameter is reported as not identified (``result.flat``).
@@ -620,11 +629,13 @@ def calibrate(model, data: Data, fit, *, bounds=None, method: str = "lbfgs",
         raise CalibrationError(f"method = {method!r} must be one of {', '.join(METHODS)}")
     if loss not in LOSSES:
         raise CalibrationError(f"loss = {loss!r} must be one of {', '.join(LOSSES)}")
-    if jac not in ("fwd", "rev"):
-        raise CalibrationError(f"jac = {jac!r} must be 'fwd' or 'rev'")
+    if jac not in ("auto", "fwd", "rev"):
+        raise CalibrationError(f"jac = {jac!r} must be 'auto', 'fwd' or 'rev'")
     if not isinstance(data, (TimeSeries, FrequencyResponse)):
         raise DataError(f"data must be a TimeSeries or FrequencyResponse (jaxdea.load_data), "
                         f"got {type(data).__name__}")
+    if jac == "auto":
+        jac = "rev" if isinstance(data, TimeSeries) else "fwd"
     params = make_params(model, fit, bounds, transforms)
     if method == "de":
         open_ = [p.name for p in params if not (math.isfinite(p.ulo) and math.isfinite(p.uhi))]
@@ -664,7 +675,7 @@ def calibrate(model, data: Data, fit, *, bounds=None, method: str = "lbfgs",
     )
     if curvature:
         (res.curvature, res.covariance, res.std, res.rel_std,
-         res.flat) = _curvature(obj, z, params, theta, final, flat_threshold)
+         res.flat) = _curvature(obj, z, params, theta, final, flat_threshold, jac)
     return res
 
 
@@ -756,7 +767,7 @@ def _run_adam(obj: _Objective, state, *, jac, maxiter, lr, tol, verbose, **_):
     return best[1], f"adam: {len(state['history'])} steps, best loss {best[0]:.4g}"
 
 
-def _run_lm(obj: _Objective, state, *, maxiter, tol, **_):
+def _run_lm(obj: _Objective, state, *, jac, maxiter, tol, **_):
     from scipy.optimize import least_squares
 
     maxiter = maxiter or 100
@@ -766,7 +777,7 @@ def _run_lm(obj: _Objective, state, *, maxiter, tol, **_):
     def both(z):
         key = np.asarray(z).tobytes()
         if key not in cache:
-            J, r = obj.fn("jac_z")(jnp.asarray(z))
+            J, r = obj.jacobian(z, jac)
             state["n_evals"] += 1
             state["n_grads"] += 1
             r, J = np.asarray(r), np.asarray(J)

@@ -204,9 +204,9 @@ def _protocol_args(p: argparse.ArgumentParser) -> None:
                    help="continuation: up (forward, as paper 000) or down the f axis")
     p.add_argument("--tol", type=float, default=1e-6,
                    help="periodic: tolerance on the scaled periodicity residual, (0, 1)")
-    p.add_argument("--early-exit", type=_early_exit, default=1e-10, metavar="TOL|off",
+    p.add_argument("--early-exit", type=_early_exit, default=1e-8, metavar="TOL|off",
                    help="paper/continuation: stop a cell once its trajectory is periodic to TOL "
-                        "(its remaining cycles would repeat the last one; default 1e-10); "
+                        "(its remaining cycles would repeat the last one; default 1e-8); "
                         "'off' runs every cell for all N cycles")
 
 
