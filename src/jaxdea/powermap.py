@@ -174,7 +174,8 @@ def _reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
 def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
              protocol: str = "paper", cycles: int = 100, average: int = 5,
              direction: str = "forward", tol: float = 1e-6,
-             early_exit: float | None = EARLY_EXIT, control: StepControl = StepControl(), chunk_cells: int | None = None,
+             early_exit: float | None = EARLY_EXIT, control: StepControl = StepControl(),
+             chunk_cells: int | None = None,
              store: str | os.PathLike | None = None, resume: bool = False,
              progress: bool = True) -> xr.Dataset:
     """Power map of ``model`` over payload mass x damping x frequency (x phase).

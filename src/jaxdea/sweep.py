@@ -178,23 +178,19 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
         raise SweepError(f"protocol = {protocol!r} must be one of {', '.join(PROTOCOLS)}")
     n = loadings.drive.frequency.shape[0]
     devices = tuple(devices or jax.devices()[:1])
+    local = -(-n // len(devices))
     if protocol == "periodic":
         from .steady import periodic_cells
-        lanes = lanes or default_lanes(-(-n // len(devices)))
-        order = dealt(n, len(devices))
-        res = periodic_cells(model.actuator, _take(loadings, order), tol=tol, control=control,
-                             lanes=lanes, devices=devices)
-        return _take(res, _undeal(n, len(devices)))
+        return _dealt_run(lambda ld: periodic_cells(
+            model.actuator, ld, tol=tol, control=control, lanes=lanes or default_lanes(local),
+            devices=devices), loadings, n, devices)
     if protocol == "continuation" and successor is None:
         raise SweepError("protocol='continuation' needs the successor of each cell")
     if protocol == "paper" and initial is None and len(devices) > 1:
-        local = -(-n // len(devices))
-        res = cell_sharded(_engine, devices)(
-            model.actuator, _take(loadings, dealt(n, len(devices))),
-            jnp.full(local * len(devices), local, jnp.int32), cycles=int(cycles),
-            average=int(average), control=control, lanes=lanes or default_lanes(local),
-            early_exit=early_exit)
-        return _take(res, _undeal(n, len(devices)))
+        return _dealt_run(lambda ld: cell_sharded(_engine, devices)(
+            model.actuator, ld, jnp.full(local * len(devices), local, jnp.int32),
+            cycles=int(cycles), average=int(average), control=control,
+            lanes=lanes or default_lanes(local), early_exit=early_exit), loadings, n, devices)
     lanes = lanes or default_lanes(n)
     if protocol == "paper" or successor is None:
         successor = np.full(n, n)
@@ -208,16 +204,16 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
                 settle=early_exit, require_settled=False)
 
 
-def _take(tree, idx: np.ndarray):
-    """Cells ``idx`` (leading axis) of every leaf of ``tree``."""
-    return jax.tree_util.tree_map(lambda a: a[idx], tree)
-
-
-def _undeal(n: int, n_dev: int) -> np.ndarray:
-    """Positions in :func:`dealt` order of the cells ``0..n-1``."""
-    local = -(-n // n_dev)
+def _dealt_run(run, loadings: Loading, n: int, devices: tuple):
+    """``run(loadings)`` with the ``n`` cells dealt round-robin over ``devices``
+    (:func:`dealt`), and its per-cell results put back in cell order."""
+    if len(devices) == 1:
+        return run(loadings)
+    take = lambda tree, idx: jax.tree_util.tree_map(lambda a: a[idx], tree)  # noqa: E731
+    local = -(-n // len(devices))
     i = np.arange(n)
-    return (i % n_dev) * local + i // n_dev
+    return take(run(take(loadings, dealt(n, len(devices)))),
+                (i % len(devices)) * local + i // len(devices))
 
 
 def chain_successors(n_f: int, n_rest: int = 1, direction: str = "forward",
@@ -295,7 +291,7 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
     if lanes is None:  # a continuation sweep is one chain: one lane is busy at a time
         local = -(-freq.size // len(devices))
         lanes = (1 if protocol == "continuation"
-                 else sweep_lanes(local) if early_exit is not None or protocol == "periodic"
+                 else sweep_lanes(local) if early_exit is not None and protocol == "paper"
                  else default_lanes(local))
     res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
                     lanes=lanes, protocol=protocol, successor=successor, tol=tol,
