@@ -146,11 +146,32 @@ def _engine(actuator, loadings, successor, *, cycles, average, control, lanes, e
                         require_settled=False)
 
 
+def _deal_slots(n: int, n_dev: int) -> np.ndarray:
+    """Position in the dealt order of each of ``n_dev`` equal device slices' slots (values
+    ``>= n`` are padding)."""
+    local = -(-n // n_dev)
+    return np.arange(local * n_dev).reshape(local, n_dev).T.ravel()
+
+
 def dealt(n: int, n_dev: int) -> np.ndarray:
     """Cell order that deals ``n`` cells round-robin to ``n_dev`` equal device slices (padded
     by repeating the last cell): every device gets the same mix of frequencies."""
-    local = -(-n // n_dev)
-    return np.minimum(np.arange(local * n_dev).reshape(local, n_dev).T.ravel(), n - 1)
+    return np.minimum(_deal_slots(n, n_dev), n - 1)
+
+
+def schedule(freq: np.ndarray, n_dev: int) -> np.ndarray:
+    """Queue order of a batch of independent cells: lowest frequency first, dealt
+    round-robin over ``n_dev`` equal device slices (padded by repeating the last cell).
+
+    Why: the lane pool drains its queue in order, and a batch takes as long as its slowest
+    lane. The cells that can cost the most are the low-frequency ones (a cell that never
+    settles runs all N cycles, and a cycle at f costs ~1/f of dt-limited steps: a 1 Hz cell
+    may need ~3e5 steps where the mean cell needs ~6e3). Starting them first leaves only
+    short cells for the end of the queue (longest-processing-time-first scheduling), so
+    large lane pools stay busy until the batch is done.
+    """
+    order = np.argsort(np.asarray(freq), kind="stable")
+    return order[dealt(order.size, n_dev)]
 
 
 def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: int = 5,
@@ -165,9 +186,10 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     ``"periodic"``: :func:`jaxdea.steady.periodic_cells` with tolerance ``tol`` (``cycles``
     and ``average`` unused). ``initial``: start states (leading axis = cells; default rest).
     ``early_exit``: :data:`EARLY_EXIT` (paper and continuation). ``devices``: JAX devices to
-    split the cells over (default: the first device only); a paper run from rest deals its
-    cells round-robin over them, the other runs use the first device only (a continuation
-    chain is sequential).
+    split the cells over (default: the first device only). Paper runs from rest and periodic
+    runs queue their cells lowest frequency first, dealt round-robin over the devices
+    (:func:`schedule`); continuation runs and runs from given states use the first device
+    only, in cell order (a continuation chain is sequential).
     """
     check_protocol(cycles, average)
     check_early_exit(early_exit)
@@ -186,16 +208,29 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
             devices=devices), loadings, n, devices)
     if protocol == "continuation" and successor is None:
         raise SweepError("protocol='continuation' needs the successor of each cell")
-    if protocol == "paper" and initial is None and len(devices) > 1:
-        return _dealt_run(lambda ld: cell_sharded(_engine, devices)(
-            model.actuator, ld, jnp.full(local * len(devices), local, jnp.int32),
-            cycles=int(cycles), average=int(average), control=control,
-            lanes=lanes or default_lanes(local), early_exit=early_exit), loadings, n, devices)
-    lanes = lanes or default_lanes(n)
+    if protocol == "paper" and initial is None:  # independent cells: schedule them
+        lanes = lanes or default_lanes(local)
+        if len(devices) > 1:
+            run = lambda ld: cell_sharded(_engine, devices)(  # noqa: E731
+                model.actuator, ld, jnp.full(local * len(devices), local, jnp.int32),
+                cycles=int(cycles), average=int(average), control=control, lanes=lanes,
+                early_exit=early_exit)
+        else:
+            run = lambda ld: _run_engine(model, ld, cycles, average, control, lanes,  # noqa
+                                         None, np.full(n, n), early_exit)
+        return _dealt_run(run, loadings, n, devices)
     if protocol == "paper" or successor is None:
         successor = np.full(n, n)
-    # one compiled engine for paper and continuation runs of any cycle count: the start
-    # states, successors and cycle counts are all arguments, not constants
+    return _run_engine(model, loadings, cycles, average, control, lanes or default_lanes(n),
+                       initial, successor, early_exit)
+
+
+def _run_engine(model, loadings, cycles, average, control, lanes, initial, successor,
+                early_exit):
+    """The lane engine on one device. One compiled engine for paper and continuation runs of
+    any cycle count: the start states, successors and cycle counts are all arguments, not
+    constants."""
+    n = loadings.drive.frequency.shape[0]
     if initial is None:
         initial = _rest_states(model.actuator, n)
     return _run(model.actuator, loadings, cycles=jnp.asarray(cycles, jnp.int32),
@@ -205,15 +240,15 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
 
 
 def _dealt_run(run, loadings: Loading, n: int, devices: tuple):
-    """``run(loadings)`` with the ``n`` cells dealt round-robin over ``devices``
-    (:func:`dealt`), and its per-cell results put back in cell order."""
-    if len(devices) == 1:
-        return run(loadings)
+    """``run(loadings)`` on the ``n`` independent cells in :func:`schedule` order (lowest
+    frequency first, dealt round-robin over ``devices``), its per-cell results put back in
+    cell order."""
     take = lambda tree, idx: jax.tree_util.tree_map(lambda a: a[idx], tree)  # noqa: E731
-    local = -(-n // len(devices))
-    i = np.arange(n)
-    return take(run(take(loadings, dealt(n, len(devices)))),
-                (i % len(devices)) * local + i // len(devices))
+    order = schedule(np.asarray(loadings.drive.frequency), len(devices))
+    real = _deal_slots(n, len(devices)) < n  # the slots that are not padding
+    where = np.empty(n, dtype=np.int64)  # slot of each cell
+    where[order[real]] = np.nonzero(real)[0]
+    return take(run(take(loadings, order)), where)
 
 
 def chain_successors(n_f: int, n_rest: int = 1, direction: str = "forward",
@@ -234,21 +269,17 @@ def chain_successors(n_f: int, n_rest: int = 1, direction: str = "forward",
 
 
 def default_lanes(n_cells: int) -> int:
-    """Lane-pool size of a power-map chunk: enough to amortise per-step overhead, not so many
-    that the longest (lowest-frequency) cell stretches the run (measured on a 2-core CPU: an
-    8 x 4 x 64 map chunk of 1024 cells per device runs at 98 / 79 / 38 trajectories/s with
-    32 / 128 / 256 lanes)."""
-    return int(min(n_cells, 32))
+    """Lane-pool size of a batch of ``n_cells`` cells on one device: 128, or all the cells.
 
-
-def sweep_lanes(n_cells: int) -> int:
-    """Lane-pool size of a one-payload frequency sweep of ``n_cells`` cells per device, with
-    the early exit: a quarter of them, 32 to 128 (measured on 2 cores, 996-f DCDEA-LS sweeps
-    of three payloads: 128 lanes run 1.4-1.5x faster than 32; 256 or all 498 are slower).
-    Without the early exit the 100 cycles of the 1 Hz cells are the critical path and more
-    lanes only make each step dearer: :func:`default_lanes` (26 s with 32 lanes, 65 s with
-    128)."""
-    return int(min(n_cells, max(32, min(128, n_cells // 4))))
+    Measured on a 2-core CPU (one device per core): a step of 128 lanes costs ~43 us, of 32
+    lanes ~15 us, of 8 lanes ~6.5 us, of one lane ~4 us (per-step overhead), so wide pools
+    are ~1.4x cheaper per cell-step than 32 lanes; 256 lanes are slower again (cache). Wide
+    pools pay off only when they stay busy to the end: cells are queued lowest frequency
+    first (:func:`schedule`) and the batch ends in smaller pools
+    (:func:`jaxdea.protocol.lane_pools`). The 8 x 8 x 64 bench map runs 1.5x faster with 128
+    lanes than with 32, the 996-f sweep with its early exit 1.5x (strict: the same).
+    """
+    return int(min(n_cells, 128))
 
 
 def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
@@ -290,9 +321,7 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
     devices = tuple(jax.devices())
     if lanes is None:  # a continuation sweep is one chain: one lane is busy at a time
         local = -(-freq.size // len(devices))
-        lanes = (1 if protocol == "continuation"
-                 else sweep_lanes(local) if early_exit is not None and protocol == "paper"
-                 else default_lanes(local))
+        lanes = 1 if protocol == "continuation" else default_lanes(local)
     res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
                     lanes=lanes, protocol=protocol, successor=successor, tol=tol,
                     early_exit=early_exit, devices=devices)
