@@ -43,7 +43,8 @@ from .sharding import cell_sharded
 from .signals import SquareWave
 from .sweep import (DIRECTIONS, DRIVES, EARLY_EXIT, PROTOCOLS, VARIABLES, SweepError,
                     _engine, _finite_array, chain_successors, check_early_exit, check_protocol,
-                    default_lanes, drive_pattern, run_cells, to_dataset)
+                    default_lanes, drive_pattern, driven_membranes, run_cells,
+                    to_dataset)
 #: Default chunk size per device: large enough that the lane pool stays busy and the slowest
 #: (lowest-frequency) cell is not the critical path, small enough for a fine progress bar.
 CHUNK_PER_DEVICE = 1024
@@ -148,7 +149,7 @@ def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, suc
         res = cell_sharded(_engine, devices)(
             model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
             cycles=cycles, average=average, control=control, lanes=default_lanes(local),
-            early_exit=early_exit)
+            early_exit=early_exit, driven=driven_membranes(loadings))
     else:  # paper and periodic: dealt over the devices; continuation on one device
         res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
                         protocol=protocol, successor=successor, tol=tol,

@@ -57,12 +57,12 @@ def with_dynamical(y: ConeState, flat: jax.Array) -> ConeState:
     return eqx.tree_at(lambda s: tuple(getattr(s, k) for k in DYNAMICAL), y, tuple(out))
 
 
-def _settle(actuator, loadings, *, warmup, tol, control, lanes):
+def _settle(actuator, loadings, *, warmup, tol, control, lanes, driven):
     return run_protocol(actuator, loadings, cycles=warmup, average=1, settle=tol,
-                        control=control, lanes=lanes)
+                        control=control, lanes=lanes, driven=driven)
 
 
-def _shoot(actuator, loadings, y, active, *, control, lanes):
+def _shoot(actuator, loadings, y, active, *, control, lanes, driven):
     """One period from ``y`` for the ``active`` cells, with the Newton step of each."""
     flat = flatten_dynamical(y)
     d = flat.shape[-1]
@@ -71,7 +71,7 @@ def _shoot(actuator, loadings, y, active, *, control, lanes):
         # one pool: every shooting cell runs one period, there is no tail to compact
         res = run_protocol(actuator, loadings, cycles=1, average=1,
                            initial=with_dynamical(y, flat + delta), active=active,
-                           control=control, pools=(lanes,))
+                           control=control, pools=(lanes,), driven=driven)
         out = flatten_dynamical(res.final_state)
         return out, (out, res)
 
@@ -93,7 +93,8 @@ SHOOTING_LANES = 16
 
 def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e-6,
                    warmup: int = 12, newton: int = 6, control: StepControl = StepControl(),
-                   lanes: int | None = None, devices: tuple | None = None) -> CycleMetrics:
+                   lanes: int | None = None, devices: tuple | None = None,
+                   driven: tuple[int, ...] | None = None) -> CycleMetrics:
     """Periodic steady state of every cell of ``loadings`` (leading axis = cells).
 
     ``tol``: convergence tolerance on the scaled state (:func:`periodicity_residual`; 1e-6
@@ -103,7 +104,8 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     count the primal work of all stages (the tangents of the shooting stage come on top).
     ``lanes``: lane pool of the settling stage (per device; default 32); shooting uses at
     most :data:`SHOOTING_LANES`. ``devices``: split the cells over these JAX devices (their
-    number must divide the cell count); default: one device.
+    number must divide the cell count); default: one device. ``driven``: the driven
+    membranes (:func:`jaxdea.protocol.run_protocol`; default all).
     """
     for name, v, lo in (("warmup", warmup, 2), ("newton", newton, 0)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
@@ -113,8 +115,9 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     devices = tuple(devices or jax.devices()[:1])
     settle = cell_sharded(_settle, devices) if len(devices) > 1 else _SETTLE
     shoot = cell_sharded(_shoot, devices) if len(devices) > 1 else _SHOOT
+    driven = None if driven is None else tuple(int(j) for j in driven)
     res = settle(actuator, loadings, warmup=int(warmup), tol=float(tol), control=control,
-                 lanes=lanes)
+                 lanes=lanes, driven=driven)
     out = {k: np.asarray(getattr(res, k)) for k in _PER_CELL}
     final = res.final_state
     y = res.final_state
@@ -123,7 +126,8 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
         if not pending.any():
             break
         r, step, size = shoot(actuator, loadings, y, jnp.asarray(pending), control=control,
-                              lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES))
+                              lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
+                              driven=driven)
         rs = {k: np.asarray(getattr(r, k)) for k in out}
         for k in out:
             if k in ("steps", "cycles_run"):

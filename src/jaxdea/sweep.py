@@ -139,11 +139,18 @@ def check_early_exit(early_exit) -> None:
                          "tolerance in the allowed range (0, 1)")
 
 
-def _engine(actuator, loadings, successor, *, cycles, average, control, lanes, early_exit):
+def _engine(actuator, loadings, successor, *, cycles, average, control, lanes, early_exit,
+            driven=None):
     """The lane engine on one device's cells from rest (``successor``: local indices)."""
     return run_protocol(actuator, loadings, cycles=cycles, average=average, control=control,
                         lanes=lanes, successor=successor, settle=early_exit,
-                        require_settled=False)
+                        require_settled=False, driven=driven)
+
+
+def driven_membranes(loadings: Loading) -> tuple[int, ...]:
+    """The membranes with a non-zero drive amplitude in some cell (concrete loadings)."""
+    amp = np.asarray(loadings.drive.amplitude)
+    return tuple(int(j) for j in np.nonzero(np.any(amp != 0, axis=0))[0])
 
 
 def _deal_slots(n: int, n_dev: int) -> np.ndarray:
@@ -201,11 +208,12 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     n = loadings.drive.frequency.shape[0]
     devices = tuple(devices or jax.devices()[:1])
     local = -(-n // len(devices))
+    driven = driven_membranes(loadings)
     if protocol == "periodic":
         from .steady import periodic_cells
         return _dealt_run(lambda ld: periodic_cells(
             model.actuator, ld, tol=tol, control=control, lanes=lanes or default_lanes(local),
-            devices=devices), loadings, n, devices)
+            devices=devices, driven=driven), loadings, n, devices)
     if protocol == "continuation" and successor is None:
         raise SweepError("protocol='continuation' needs the successor of each cell")
     if protocol == "paper" and initial is None:  # independent cells: schedule them
@@ -214,19 +222,19 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
             run = lambda ld: cell_sharded(_engine, devices)(  # noqa: E731
                 model.actuator, ld, jnp.full(local * len(devices), local, jnp.int32),
                 cycles=int(cycles), average=int(average), control=control, lanes=lanes,
-                early_exit=early_exit)
+                early_exit=early_exit, driven=driven)
         else:
             run = lambda ld: _run_engine(model, ld, cycles, average, control, lanes,  # noqa
-                                         None, np.full(n, n), early_exit)
+                                         None, np.full(n, n), early_exit, driven)
         return _dealt_run(run, loadings, n, devices)
     if protocol == "paper" or successor is None:
         successor = np.full(n, n)
     return _run_engine(model, loadings, cycles, average, control, lanes or default_lanes(n),
-                       initial, successor, early_exit)
+                       initial, successor, early_exit, driven)
 
 
 def _run_engine(model, loadings, cycles, average, control, lanes, initial, successor,
-                early_exit):
+                early_exit, driven=None):
     """The lane engine on one device. One compiled engine for paper and continuation runs of
     any cycle count: the start states, successors and cycle counts are all arguments, not
     constants."""
@@ -236,7 +244,7 @@ def _run_engine(model, loadings, cycles, average, control, lanes, initial, succe
     return _run(model.actuator, loadings, cycles=jnp.asarray(cycles, jnp.int32),
                 average=jnp.asarray(average, jnp.int32), control=control, lanes=lanes,
                 initial=initial, successor=jnp.asarray(successor, jnp.int32),
-                settle=early_exit, require_settled=False)
+                settle=early_exit, require_settled=False, driven=driven)
 
 
 def _dealt_run(run, loadings: Loading, n: int, devices: tuple):
