@@ -97,3 +97,32 @@ def test_bad_driven_membranes_are_rejected(model):
     for bad in ((2,), (0, 0), (-1,)):
         with pytest.raises(ValueError, match="driven must list distinct membranes"):
             run_protocol(model.actuator, loads, cycles=2, average=1, driven=bad)
+
+
+def _rest(model, n):
+    import jax
+    import jax.numpy as jnp
+    rest = model.actuator.initial_state()
+    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), rest)
+
+
+def test_failed_cells_get_their_status_code(model):
+    """Status 1 (lock-up), 2 (non-finite state), 3 (step budget) from the engine itself, and
+    the ok cells of the same batch are not affected."""
+    import jax.numpy as jnp
+    loads = make_loadings(model, 2e-3, 0.1, np.full(5, 70.0))
+    y = _rest(model, 5)
+    # cell 1: dielectric dashpot stretch far below its relaxed value: the branch spring is
+    # beyond its Gent limit at once; cell 2: a NaN velocity; cell 3: an infinite position
+    y = eqx.tree_at(lambda s: (s.xi_m, s.v, s.q), y,
+                    (y.xi_m.at[1].set(0.05), y.v.at[2].set(jnp.nan), y.q.at[3].set(jnp.inf)))
+    kw = dict(cycles=3, average=1, initial=y, pools=(5,), driven=(0,))
+    res = _run(model.actuator, loads, **kw)
+    np.testing.assert_array_equal(np.asarray(res.status), [0, 1, 2, 2, 0])
+    ok = _run(model.actuator, loads, cycles=3, average=1, pools=(5,), driven=(0,))
+    for k in ("P_out", "P_in", "amplitude"):
+        np.testing.assert_allclose(np.asarray(getattr(res, k))[[0, 4]],
+                                   np.asarray(getattr(ok, k))[[0, 4]], rtol=1e-12)
+    budget = _run(model.actuator, loads, control=jaxdea.StepControl(max_steps=50), **kw)
+    np.testing.assert_array_equal(np.asarray(budget.status), [3, 1, 2, 2, 3])
+    assert int(budget.steps[0]) == 50
