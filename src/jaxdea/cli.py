@@ -291,7 +291,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--average", type=int, default=5, help="last periods averaged")
     m.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
     _protocol_args(m)
-    m.add_argument("--chunk", type=int, help="cells per compiled call (default 1024 per device)")
+    m.add_argument("--chunk", type=int, help="cells per compiled call (default: equal chunks "
+                   "of at most 4096 cells per device)")
     m.add_argument("--out", required=True, help="output store: .zarr (Zarr) or .nc (NetCDF)")
     m.add_argument("--resume", action="store_true",
                    help="continue an interrupted run of the same settings (reuse its chunks)")
