@@ -24,7 +24,7 @@ import pytest
 
 import jaxdea
 from jaxdea.steady import flatten_dynamical, periodic_cells, with_dynamical
-from jaxdea.sweep import chain_successors, make_loadings, run_cells
+from jaxdea.sweep import chain_heads, chain_successors, make_loadings, run_cells
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "scdea_ls.toml")
 SRC = str(Path(__file__).parents[1] / "src")
@@ -48,6 +48,10 @@ def test_chain_successors_layout():
     # (blocks, f, rest) = (2, 2, 2): cell (b, j, r) -> (b, j + 1, r)
     np.testing.assert_array_equal(chain_successors(2, 2, "forward", 2),
                                   [2, 3, 8, 8, 6, 7, 8, 8])
+    # chains (one lane each): one per (block, rest); independent cells are chains of one
+    assert chain_heads(chain_successors(3)) == 1
+    assert chain_heads(chain_successors(2, 2, "backward", 2)) == 4
+    assert chain_heads(np.full(5, 5)) == 5
 
 
 def test_continuation_hands_over_the_final_state(model):

@@ -43,14 +43,17 @@ from .sharding import cell_sharded
 from .signals import SquareWave
 from .sweep import (DIRECTIONS, DRIVES, EARLY_EXIT, PROTOCOLS, VARIABLES, SweepError,
                     _engine, _finite_array, chain_successors, check_early_exit, check_protocol,
-                    default_lanes, drive_pattern, driven_membranes, run_cells,
-                    to_dataset)
+                    chain_heads, default_lanes, drive_pattern, driven_membranes,
+                    run_cells, to_dataset)
 #: Default chunk size per device: large enough that the lane pools stay busy while a
 #: low-frequency cell that never settles runs its 100 cycles (~3e5 steps at 1 Hz, against
 #: ~5e3 for the mean cell), small enough for a fine progress bar and cheap resumes. Chunks
 #: are equal (the last one is not mostly padding). Measured on 2 cores, 5 x 5 x 996 map:
 #: 1190 / 1494 / 1536 trajectories/s with 1024 / 4096 / 8192 cells per device.
 CHUNK_PER_DEVICE = 4096
+#: Default chains per device in a continuation chunk: a chain runs its frequencies one
+#: after another on one lane, so a chunk needs as many chains as the lane pool is wide.
+CONTINUATION_CHAINS = 128
 _BYTES_PER_CELL = 8 * len(VARIABLES)
 
 
@@ -146,13 +149,12 @@ class _Grid:
 def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, successor, cycles,
                average, control, tol, early_exit) -> dict[str, np.ndarray]:
     """One chunk; ``successor`` (continuation) is the pattern of one device's slice."""
-    n = loadings.drive.frequency.shape[0]
     if protocol == "continuation" and len(devices) > 1:  # whole chains per device slice
-        local = n // len(devices)
         res = cell_sharded(_engine, devices)(
             model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
-            cycles=cycles, average=average, control=control, lanes=default_lanes(local),
-            early_exit=early_exit, driven=driven_membranes(loadings))
+            cycles=cycles, average=average, control=control,
+            lanes=default_lanes(chain_heads(successor)), early_exit=early_exit,
+            driven=driven_membranes(loadings))
     else:  # paper and periodic: dealt over the devices; continuation on one device
         res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
                         protocol=protocol, successor=successor, tol=tol,
@@ -197,7 +199,8 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     makes one per CPU core; the CLI does that).
     ``chunk_cells``: cells per compiled call (rounded up to a multiple of the device count,
     and for continuation to whole frequency chains per device; default: equal chunks of at
-    most :data:`CHUNK_PER_DEVICE` cells per device). ``store`` (``.zarr`` or ``.nc``): write
+    most :data:`CHUNK_PER_DEVICE` cells, or for continuation :data:`CONTINUATION_CHAINS`
+    chains, per device). ``store`` (``.zarr`` or ``.nc``): write
     each finished chunk to ``<store>.parts`` and the final Dataset to ``store``; ``resume=True`` reuses the finished
     chunks of an interrupted run with identical settings. ``progress``: tqdm bar over chunks.
 
@@ -248,19 +251,23 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
 
     # ---- chunking -----------------------------------------------------------------------
     devices = tuple(jax.devices())
+    n_dev = len(devices)
     n_cells = math.prod(shape)
-    chunk = int(chunk_cells or CHUNK_PER_DEVICE * len(devices))
-    chunk = min(chunk, -(-n_cells // len(devices)) * len(devices))  # no more than the grid
-    if chunk_cells is None:  # equal chunks: the last one is not mostly padding
-        chunk = -(-n_cells // -(-n_cells // chunk))
-    chunk = -(-chunk // len(devices)) * len(devices)  # a multiple of the device count
     successor = None
     if protocol == "continuation":  # whole chains (all f of a payload and phase) per device
         n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
-        block = n_f * n_rest * len(devices)
-        chunk = -(-chunk // block) * block
-        successor = chain_successors(n_f, n_rest, direction, chunk // (n_f * n_rest)
-                                     // len(devices))
+        unit = n_f * n_rest * n_dev  # one payload's chains on every device
+        target = chunk_cells or CONTINUATION_CHAINS * n_f * n_dev
+    else:
+        unit = n_dev
+        target = chunk_cells or CHUNK_PER_DEVICE * n_dev
+    units = -(-n_cells // unit)
+    per_chunk = min(-(-int(target) // unit), units)  # units per chunk: no more than the grid
+    if chunk_cells is None:  # equal chunks: the last one is not mostly padding
+        per_chunk = -(-units // -(-units // per_chunk))
+    chunk = per_chunk * unit
+    if protocol == "continuation":
+        successor = chain_successors(n_f, n_rest, direction, per_chunk)
     n_chunks = -(-n_cells // chunk)
     grid = _Grid(axes=axes, shape=shape,
                  amplitude=np.stack([on * float(model.voltage) for on, _ in patterns]),

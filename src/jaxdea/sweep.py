@@ -229,8 +229,9 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
         return _dealt_run(run, loadings, n, devices)
     if protocol == "paper" or successor is None:
         successor = np.full(n, n)
-    return _run_engine(model, loadings, cycles, average, control, lanes or default_lanes(n),
-                       initial, successor, early_exit, driven)
+    lanes = lanes or default_lanes(chain_heads(successor))  # a chain is busy on one lane
+    return _run_engine(model, loadings, cycles, average, control, lanes, initial, successor,
+                       early_exit, driven)
 
 
 def _run_engine(model, loadings, cycles, average, control, lanes, initial, successor,
@@ -274,6 +275,13 @@ def chain_successors(n_f: int, n_rest: int = 1, direction: str = "forward",
     else:
         succ[:, 1:, :] = idx[:, :-1, :]
     return succ.ravel()
+
+
+def chain_heads(successor) -> int:
+    """How many chains ``successor`` (:func:`chain_successors`; ``n`` = none) forms: the
+    cells that are no cell's successor."""
+    succ = np.asarray(successor)
+    return int(succ.size - np.unique(succ[succ < succ.size]).size)
 
 
 def default_lanes(n_cells: int) -> int:
