@@ -200,9 +200,10 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     ``chunk_cells``: cells per compiled call (rounded up to a multiple of the device count,
     and for continuation to whole frequency chains per device; default: equal chunks of at
     most :data:`CHUNK_PER_DEVICE` cells, or for continuation :data:`CONTINUATION_CHAINS`
-    chains, per device). ``store`` (``.zarr`` or ``.nc``): write
-    each finished chunk to ``<store>.parts`` and the final Dataset to ``store``; ``resume=True`` reuses the finished
-    chunks of an interrupted run with identical settings. ``progress``: tqdm bar over chunks.
+    chains, per device). ``store`` (``.zarr`` or ``.nc``): write each finished chunk to
+    ``<store>.parts`` and the final Dataset to ``store``; ``resume=True`` reuses the
+    finished chunks of an interrupted run with identical settings. ``progress``: tqdm bar
+    over chunks.
 
     Returns a Dataset with dims (M, c, f[, phase]) and variables P_out, P_in, P_in_signed,
     efficiency, amplitude, v_rms, status (0 = ok, see :data:`jaxdea.STATUS`), steps, residual

@@ -331,7 +331,7 @@ def run_protocol(
     ``pools``: the lane-pool sizes the batch runs through, widest first (default
     :func:`lane_pools`; the first entry replaces ``lanes``). ``driven``: the membranes whose
     source voltage is non-zero in some cell (static; default all). The energy returned to
-    the source is integrated for these only (it is ~40 % of a lane-step's cost).
+    the source is integrated for these only (for two membranes ~20 % of a lane-step).
     """
     if isinstance(cycles, int) and isinstance(average, int):
         if not 1 <= average <= cycles:
