@@ -71,7 +71,8 @@ def main() -> None:
     ok = int((ds.status.values == 0).sum())
     print(f"jaxdea: {n_cells} cells x {cycles} cycles (early exit {jaxdea.EARLY_EXIT:g}: mean "
           f"{ds.cycles_run.values.mean():.1f} cycles run) on {n_dev} device(s) in {jax_s:.1f} s "
-          f"({n_cells / jax_s:.1f} trajectories/s), warm-up (same shape) incl. compile {warm_s:.1f} s, "
+          f"({n_cells / jax_s:.1f} trajectories/s), warm-up (same shape) incl. compile "
+          f"{warm_s:.1f} s, "
           f"status ok {ok}/{n_cells}, peak RSS {rss_mb:.0f} MB")
 
     rng = np.random.default_rng(0)

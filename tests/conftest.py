@@ -1,4 +1,3 @@
-import os
 import sys
 from pathlib import Path
 
@@ -6,15 +5,14 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+import jaxdea  # noqa: E402
+from jaxdea.sharding import without_eigen_pool  # noqa: E402
+
 # The suite runs on one JAX CPU device. XLA's Eigen intra-op pool has nothing to split in the
 # lane engine's tiny ops, and its spinning workers can take half a core from the compute
-# thread (jaxdea.use_cpu_cores sets the same flag for the CLI and benches). Set before JAX
-# starts its backend; threading only, the numbers are unchanged.
-if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                               + " --xla_cpu_multi_thread_eigen=false").strip()
-
-import jaxdea  # noqa: E402
+# thread (jaxdea.use_cpu_cores does the same for the CLI and benches). Importing jaxdea does
+# not start a JAX backend, so this still takes effect; threading only, numbers unchanged.
+without_eigen_pool()
 
 CONFIG_DIR = Path(__file__).parents[1] / "configs"
 

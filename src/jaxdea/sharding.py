@@ -45,6 +45,14 @@ def cell_sharded(fn: Callable, devices: tuple) -> Callable:
     return _CACHE[key]
 
 
+def without_eigen_pool() -> None:
+    """Add ``--xla_cpu_multi_thread_eigen=false`` to ``XLA_FLAGS`` unless that flag is set
+    (see :func:`use_cpu_cores`; XLA reads it when the backend starts, so call this first)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_multi_thread_eigen" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_multi_thread_eigen=false").strip()
+
+
 def use_cpu_cores(n: int | None = None) -> int:
     """Make the CPU backend expose ``n`` devices (default: one per core) and return the count.
 
@@ -60,10 +68,8 @@ def use_cpu_cores(n: int | None = None) -> int:
     CPU device count in effect is returned.
     """
     n = int(n or os.cpu_count() or 1)
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_multi_thread_eigen" not in flags:  # read when the backend starts
-        os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_multi_thread_eigen=false").strip()
-    if "xla_force_host_platform_device_count" not in flags:
+    without_eigen_pool()
+    if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
         try:
             jax.config.update("jax_num_cpu_devices", n)
         except RuntimeError:  # a backend has started: too late, keep what it has

@@ -335,9 +335,6 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
     loadings = make_loadings(model, mass, damping, freq, drive, phase)
     successor = chain_successors(freq.size, direction=direction)
     devices = tuple(jax.devices())
-    if lanes is None:  # a continuation sweep is one chain: one lane is busy at a time
-        local = -(-freq.size // len(devices))
-        lanes = 1 if protocol == "continuation" else default_lanes(local)
     res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
                     lanes=lanes, protocol=protocol, successor=successor, tol=tol,
                     early_exit=early_exit, devices=devices)
