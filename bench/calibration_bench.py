@@ -27,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 
-from jaxdea.calibrate import calibrate  # noqa: E402
+from jaxdea.calibration import calibrate  # noqa: E402
 from test_calibrate import FIT_B, PREDICT_B, make_problem_b  # noqa: E402
 
 FIT = FIT_B[:3]  # mu_A, mu_B, tau: J_B (not identified) only with --with-jb

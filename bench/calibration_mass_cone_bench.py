@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).parent))
 
 from calibration_bench import compare_methods  # noqa: E402
-from jaxdea.calibrate import DE_PAPER  # noqa: E402
+from jaxdea.calibration import DE_PAPER  # noqa: E402
 from test_calibrate_mass_cone import FIT, problem_a  # noqa: E402
 
 

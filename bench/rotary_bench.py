@@ -64,7 +64,7 @@ def scipy_angle(ri, d):
 
 
 def main(argv=None) -> int:
-    from jaxdea.cli import parse_points
+    from jaxdea.cli.args import parse_points
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ri", default="2e-3:7e-3:26")

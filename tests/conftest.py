@@ -6,7 +6,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 
 import jaxdea  # noqa: E402
-from jaxdea.sharding import without_eigen_pool  # noqa: E402
+from jaxdea.engine.sharding import without_eigen_pool  # noqa: E402
 
 # The suite runs on one JAX CPU device. XLA's Eigen intra-op pool has nothing to split in the
 # lane engine's tiny ops, and its spinning workers can take half a core from the compute

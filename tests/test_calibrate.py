@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.caldata import DataError, FrequencyResponse, TimeSeries, load_data, save_data
-from jaxdea.calibrate import (CalibrationError, calibrate, error_metrics, frequency_response,
-                              get_params, make_params, parameter_names, resolve_names,
-                              set_params, write_fitted_config)
+from jaxdea.calibration import DataError, FrequencyResponse, TimeSeries, load_data, save_data
+from jaxdea.calibration import (CalibrationError, calibrate, error_metrics, frequency_response,
+                                get_params, make_params, parameter_names, resolve_names,
+                                set_params, write_fitted_config)
 from jaxdea.cli import main
 
 CONFIG = Path(__file__).parents[1] / "configs" / "scdea_ls.toml"
@@ -432,7 +432,7 @@ def test_cli_bad_data_file(tmp_path, capsys):
 
 
 def test_transient_predictor_checks_the_drive():
-    from jaxdea.calibrate import transient_predictor
+    from jaxdea.calibration import transient_predictor
     from jaxdea.signals import MultiSine
 
     sig = MultiSine(jnp.asarray([6e3, 6.5e3]), jnp.asarray([0.2, 0.4]))

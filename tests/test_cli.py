@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from jaxdea.cli import main, parse_range
+from jaxdea.cli import main
+from jaxdea.cli.args import parse_range
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "scdea_ls.toml")
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.actuators.mass_cone import MassCone, prestretch_report
+from jaxdea.models.mass_cone import MassCone, prestretch_report
 from jaxdea.config import ConfigError, model_from_dict
 from jaxdea.signals import MultiSine
-from jaxdea.viscoelastic import amplitude_frequency, displacement, solve
+from jaxdea.studies.transient import amplitude_frequency, displacement, solve
 from viscoelastic_reference import (huang_equilibrium_load, huang_reference, kelvin_reference,
                                     multisine, multisine_kinks)
 

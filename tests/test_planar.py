@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.actuators.planar import PlanarDEA
+from jaxdea.models.planar import PlanarDEA
 from jaxdea.config import ConfigError, model_from_dict
 from jaxdea.signals import voltage_pattern
-from jaxdea.viscoelastic import displacement, hysteresis_area, solve
+from jaxdea.studies.transient import displacement, hysteresis_area, solve
 from viscoelastic_reference import planar_reference, vp1
 
 CONFIGS = Path(__file__).parents[1] / "configs"

@@ -21,10 +21,11 @@ import pytest
 import xarray as xr
 
 import jaxdea
-from jaxdea.cli import main, parse_points, parse_range
-from jaxdea.mapstore import open_map
+from jaxdea.cli import main
+from jaxdea.cli.args import parse_points, parse_range
+from jaxdea.studies.mapstore import open_map
 
-pm = importlib.import_module("jaxdea.powermap")  # the module (jaxdea.powermap is the function)
+pm = importlib.import_module("jaxdea.studies.powermap")  # the module (jaxdea.powermap is the function)
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "scdea_ls.toml")
 DOUBLE = str(Path(__file__).parents[1] / "configs" / "dcdea_ls.toml")
@@ -86,7 +87,7 @@ def test_p_max_skips_failed_cells():
     p = np.array([[1.0, 2.0, 9.0], [5.0, 6.0, 7.0]])
     ds = xr.Dataset({"P_out": (("c", "f"), p), "status": (("c", "f"), status)},
                     coords={"c": [1.0, 2.0], "f": [10.0, 20.0, 30.0]})
-    out = pm._reduce_over_f(ds)
+    out = pm.reduce_over_f(ds)
     np.testing.assert_array_equal(out.P_max.values, [2.0, np.nan])
     np.testing.assert_array_equal(out.f_at_P_max.values, [20.0, np.nan])
 
@@ -264,7 +265,7 @@ def test_cli_bad_arguments(tmp_path, monkeypatch, capsys, args, message):
 def test_parse_points_and_phases():
     np.testing.assert_allclose(parse_points("1e-4:1e-2:3", "--mass"), [1e-4, 1e-3, 1e-2])
     np.testing.assert_allclose(parse_points("0:1:3:lin", "--mass"), [0.0, 0.5, 1.0])
-    from jaxdea.cli import parse_phases
+    from jaxdea.cli.args import parse_phases
     ph = parse_phases("0:6.2832:8")
     assert ph.size == 8 and ph[0] == 0.0 and ph[-1] < 2 * np.pi
 

@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.steady import flatten_dynamical, periodic_cells, with_dynamical
-from jaxdea.sweep import chain_heads, chain_successors, make_loadings, run_cells
+from jaxdea.engine.periodic import flatten_dynamical, periodic_cells, with_dynamical
+from jaxdea.engine.batch import chain_heads, chain_successors, run_cells
+from jaxdea.studies.loadings import make_loadings
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "scdea_ls.toml")
 SRC = str(Path(__file__).parents[1] / "src")
@@ -103,7 +104,7 @@ def test_continuation_map_equals_sweeps_and_four_devices(model, tmp_path):
                          env=env, timeout=300)
     assert res.returncode == 0, res.stderr
     assert "chunks 1" in res.stdout  # 4 chains of 3 f: one chunk, one chain per device
-    sharded = jaxdea.mapstore.open_map(store)
+    sharded = jaxdea.studies.mapstore.open_map(store)
     np.testing.assert_array_equal(sharded.status.values, ds.status.values)
     np.testing.assert_allclose(sharded.P_out.values, ds.P_out.values, rtol=1e-10)
 

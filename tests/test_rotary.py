@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.actuators import rotary as R
+from jaxdea.models import rotary as R
+from jaxdea.studies import rotary as RS
 from jaxdea.config import ConfigError, model_from_dict
 from jaxdea.materials import ogden_type_stress
 
@@ -150,14 +151,14 @@ def test_ogden_type_law():
 def test_static_equilibrium_equals_time_integration_to_rest():
     grav = R.paper_model(2e-3, 7e-3, gravity=9.807)
     static = R.equilibrium(grav)
-    rest = R.settle(grav)  # filtered step, diffrax to rest
+    rest = RS.settle(grav)  # filtered step, diffrax to rest
     assert int(static.status) == 0 and float(rest.t) > 0.5
     assert abs(float(rest.q[2] - static.q[2])) < 1e-6
     np.testing.assert_allclose(rest.q[:2], static.q[:2], atol=1e-9)
 
 
 def test_filtered_step_response_is_overdamped_rise(model):
-    ds = R.simulate_rotary(model, t_end=1.0)
+    ds = RS.simulate_rotary(model, t_end=1.0)
     th = ds["theta_deg"].values
     final = np.degrees(float(R.equilibrium(model).q[2]))
     assert th[0] == 0.0 and np.all(np.diff(th) >= -1e-9)  # monotone (heavily damped)
@@ -181,7 +182,7 @@ def test_no_stable_equilibrium_and_invalid_geometry_get_status_codes(model):
 
 
 def test_angle_gradient_matches_central_differences(model):
-    fun = R._objective_fn()  # (model, [r_i, d]) -> (-|theta| deg, gradient), jitted once
+    fun = RS.angle_objective  # (model, [r_i, d]) -> (-|theta| deg, gradient), jitted
     x = jnp.array([4e-3, 10e-3])
     val, grad = fun(model, x)
     assert float(val) == pytest.approx(-4.7365, abs=1e-3)
@@ -197,7 +198,7 @@ def test_angle_gradient_matches_central_differences(model):
 @pytest.mark.parametrize("start", [(4e-3, 12e-3), (6.5e-3, 5e-3), (3e-3, 17e-3)])
 def test_optimiser_reaches_grid_optimum(model, study, start):
     best = float(study["theta_deg"].max())
-    res = R.optimise_design(model, start=start)
+    res = RS.optimise_design(model, start=start)
     assert res["theta_deg"] >= best - 1e-9
     assert res["r_i"] == pytest.approx(2e-3)  # lower bound: smaller r_i is better
     assert 7e-3 < res["d"] < 8.5e-3

@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.protocol import lane_pools, run_protocol
-from jaxdea.sweep import driven_membranes, make_loadings, schedule
+from jaxdea.engine.lanes import lane_pools, run_protocol
+from jaxdea.engine.batch import driven_membranes, schedule
+from jaxdea.studies.loadings import make_loadings
 
 CONFIG = Path(__file__).parents[1] / "configs" / "dcdea_ls.toml"
 _run = eqx.filter_jit(run_protocol)

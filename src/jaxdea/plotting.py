@@ -225,3 +225,18 @@ def plot_rotary_study(ds: xr.Dataset, path: str | Path | None = None):
         fig.savefig(path, dpi=130)
         plt.close(fig)
     return fig
+
+
+def plot_transient(ds: xr.Dataset, path: str | Path | None = None):
+    """Displacement vs time and vs voltage (hysteresis loops), as the papers' figures."""
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
+    t = ds["t"].values
+    ax[0].plot(t, ds["voltage"].values / 1e3)
+    ax[0].set(xlabel="t (s)", ylabel="voltage (kV)")
+    ax[1].plot(t, ds["displacement"].values * 1e3)
+    ax[1].set(xlabel="t (s)", ylabel="displacement (mm)")
+    ax[2].plot(ds["voltage"].values / 1e3, ds["displacement"].values * 1e3, lw=0.8)
+    ax[2].set(xlabel="voltage (kV)", ylabel="displacement (mm)")
+    fig.suptitle(ds.attrs.get("model", ""))
+    fig.tight_layout()
+    return _save(fig, path)

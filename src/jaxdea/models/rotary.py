@@ -33,16 +33,15 @@ maps the angle over ``(r_i, d)`` in one vmapped, jitted call (paper 003 Fig 12);
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ..config import ConfigError, Field, _section
+from .._checks import ConfigError
 from ..geometry import double_cone_lengths
 from ..materials import EPS0, ogden_type_stress
 
@@ -249,7 +248,7 @@ def _replace_static(model: RotaryDCDEA, field: str) -> RotaryDCDEA:
     return RotaryDCDEA(**kw)
 
 
-def _f64(x) -> Array:
+def f64(x) -> Array:
     return jnp.asarray(x, dtype=jnp.float64)
 
 
@@ -260,12 +259,12 @@ def paper_model(r_i: float = 2e-3, d: float = 7e-3, *, gravity: float = 0.0,
     """Table 1 of paper 003 with the given ``r_i``, ``d`` (m); the rest as in
     ``configs/rotary_dcdea.toml``. ``check`` raises :class:`ConfigError` on invalid geometry."""
     model = RotaryDCDEA(
-        r_i=_f64(r_i), r_o=_f64(22.5e-3), d=_f64(d), f=_f64(0.0), h=_f64(2e-3), z0=_f64(z0),
-        mass=_f64(mass), inertia=_f64(inertia), gravity=_f64(gravity),
-        material=OgdenTypeDE(alpha=(2.0, 4.0), beta=_f64([1.707e6, -0.023e6]),
-                             gamma=_f64([1.298e6, -0.955e6]), eps_r=_f64(2.8),
-                             eta_v0=_f64(0.2e6)),
-        field_max=_f64(80e6), pattern=_f64(pattern), filter_time=_f64(filter_time),
+        r_i=f64(r_i), r_o=f64(22.5e-3), d=f64(d), f=f64(0.0), h=f64(2e-3), z0=f64(z0),
+        mass=f64(mass), inertia=f64(inertia), gravity=f64(gravity),
+        material=OgdenTypeDE(alpha=(2.0, 4.0), beta=f64([1.707e6, -0.023e6]),
+                             gamma=f64([1.298e6, -0.955e6]), eps_r=f64(2.8),
+                             eta_v0=f64(0.2e6)),
+        field_max=f64(80e6), pattern=f64(pattern), filter_time=f64(filter_time),
         field=field,
     )
     if field not in FIELD_MODES:
@@ -293,7 +292,7 @@ def check_geometry(model: RotaryDCDEA, prefix: str = "geometry") -> None:
 # ---- static equilibrium -------------------------------------------------------------------
 
 
-def _scales(model: RotaryDCDEA) -> Array:
+def scales(model: RotaryDCDEA) -> Array:
     """Variable scales ``[L, L, 1]`` (L = r_o - r_i) for convergence tests and stiffness."""
     span = model.r_o - model.r_i
     return jnp.stack([span, span, jnp.ones_like(span)])
@@ -306,7 +305,7 @@ def _residual_and_jacobian(model: RotaryDCDEA, q: Array, v: Array) -> tuple[Arra
 
 def _scaled_sym(model: RotaryDCDEA, dres: Array) -> Array:
     """Stiffness ``-dR/dq`` scaled to ``[G/L, G/L, theta]`` and symmetrised."""
-    scale = _scales(model)
+    scale = scales(model)
     ks = -dres * scale[:, None] * scale[None, :]
     return 0.5 * (ks + ks.T)
 
@@ -390,7 +389,7 @@ def _equilibrium(model: RotaryDCDEA, v: Array, *, steps: int, iters: int, final_
         + [np.ones(final_iters)]
     ends = np.concatenate([np.arange(len(st)) == len(st) - 1 for st in stages])
     schedule = np.concatenate(stages)
-    scale = _scales(safe)
+    scale = scales(safe)
 
     def body(q, inp):
         frac, end = inp
@@ -438,293 +437,3 @@ def steady_angle(model: RotaryDCDEA, v: ArrayLike | None = None, **kw) -> Array:
     """Steady rotation angle theta (rad) of the stable equilibrium (NaN unless status 0);
     differentiable (IFT) for ``jax.grad`` w.r.t. any model parameter, e.g. ``r_i`` and ``d``."""
     return equilibrium_q(model, v, **kw)[0][2]
-
-
-# ---- time integration (diffrax) -----------------------------------------------------------
-
-
-def _rest_event(tol: float, t_min):
-    """Event: at rest when ``t > t_min`` and every scaled velocity ``|G'/L|, |theta'|`` is
-    below ``tol`` (1/s). (diffrax's ``steady_state_event`` fires at t = 0, where the
-    unactuated spacer is at rest before the drive rises.)"""
-
-    def cond_fn(t, y, args, **kwargs):
-        model = args[1]
-        vel = jnp.abs(y[3:] / _scales(model))
-        return (t > t_min) & (jnp.max(vel) < tol)
-
-    return diffrax.Event(cond_fn)
-
-
-@eqx.filter_jit
-def _integrate(model: RotaryDCDEA, drive, y0, t_end, ts, rtol, atol, rest_tol, t_min,
-               max_steps: int = 200_000):
-    """diffrax Tsit5 with a PID controller (the system is overdamped but only mildly stiff:
-    an explicit solver compiles in seconds where an implicit one takes tens; all numbers are
-    passed as arrays so new values do not recompile). Saves at ``ts``
-    and at the end; stops early at rest (:func:`_rest_event`; ``rest_tol = 0`` never fires).
-    One compiled function serves :func:`simulate_rotary` and :func:`settle`."""
-    term = diffrax.ODETerm(lambda t, y, args: args[1].vector_field(t, y, args[0]))
-    sol = diffrax.diffeqsolve(
-        term, diffrax.Tsit5(), t0=0.0, t1=t_end, dt0=1e-5, y0=y0, args=(drive, model),
-        saveat=diffrax.SaveAt(ts=ts, t1=True),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        max_steps=max_steps, event=_rest_event(rest_tol, t_min), throw=False,
-    )
-    return sol.ts, sol.ys, sol.result, sol.stats["num_steps"]
-
-
-def simulate_rotary(model: RotaryDCDEA, t_end: float = 1.0, n_save: int = 401, drive=None,
-                    rtol: float = 1e-8, atol: float = 1e-12):
-    """Dynamic response (paper 003 eqs 3-5 with eq 10's viscous term) to ``drive`` (default:
-    the filtered step to the eq-30 voltage, :class:`FilteredStep`) from the unactuated
-    equilibrium.
-
-    Returns an ``xarray.Dataset`` over ``t`` (s): ``theta_deg``, ``G_x``, ``G_y`` (m) and per
-    element ``stretch``, ``force`` (N), ``voltage`` (V), ``field`` (V/m).
-    """
-    import xarray as xr
-
-    drive = model.drive() if drive is None else drive
-    ts = jnp.linspace(0.0, t_end, n_save)  # n_save = 401 shares settle's compilation
-    ts_out, ys, result, _ = _integrate(model, drive, model.initial_state(), *map(
-        _f64, (t_end, ts, rtol, atol, 0.0, 0.0)))
-    if not bool(result == diffrax.RESULTS.successful):
-        raise RuntimeError(f"diffrax failed: {result}")
-    ts_out, ys = ts_out[:-1], ys[:-1]  # drop the t1 copy
-    obs = _observe(model, drive, ts_out, ys)
-    el = ("t", "element")
-    return xr.Dataset(
-        {
-            "theta_deg": (("t",), np.degrees(np.asarray(obs["theta"])), {"units": "deg"}),
-            "G_x": (("t",), np.asarray(obs["G_x"]), {"units": "m"}),
-            "G_y": (("t",), np.asarray(obs["G_y"]), {"units": "m"}),
-            "stretch": (el, np.asarray(obs["stretch"]), {"units": "1"}),
-            "force": (el, np.asarray(obs["force"]), {"units": "N"}),
-            "voltage": (el, np.asarray(obs["voltage"]), {"units": "V"}),
-            "field": (el, np.asarray(obs["field"]), {"units": "V/m"}),
-        },
-        coords={"t": ("t", np.asarray(ts_out), {"units": "s"}), "element": list(ELEMENTS)},
-        attrs={"r_i": float(model.r_i), "d": float(model.d), "field_mode": model.field},
-    )
-
-
-@eqx.filter_jit
-def _observe(model: RotaryDCDEA, drive, ts, ys) -> dict:
-    return jax.vmap(lambda t, y: model.observables(t, y, drive))(ts, ys)
-
-
-class Settled(NamedTuple):
-    """Result of :func:`settle`: final ``q`` (3,), time at rest ``t`` (s), solver steps."""
-
-    q: Array
-    t: Array
-    steps: Array
-
-
-def settle(model: RotaryDCDEA, drive=None, t_end: float = 30.0, rtol: float = 1e-10,
-           atol: float = 1e-14, rest_tol: float = 1e-9, n_save: int = 401) -> Settled:
-    """Integrate the dynamics (diffrax) from the unactuated equilibrium until rest: after
-    ``3 filter_time``, every scaled velocity below ``rest_tol`` 1/s (with the ~0.2 s slowest
-    time constant of Table 1 that leaves ~1e-10 rad of motion to go)."""
-    drive = model.drive() if drive is None else drive
-    t_min = 3.0 * getattr(drive, "tau", 0.0)
-    grid = jnp.linspace(0.0, t_end, n_save)  # same shape as simulate_rotary: one compilation
-    ts, ys, result, steps = _integrate(model, drive, model.initial_state(), *map(
-        _f64, (t_end, grid, rtol, atol, rest_tol, t_min)))
-    if not bool(result == diffrax.RESULTS.event_occurred):
-        raise RuntimeError(f"diffrax did not reach rest by t = {t_end} s: {result}")
-    last = int(jnp.sum(jnp.isfinite(ts))) - 1  # saves after the event are inf; t1 = event
-    return Settled(q=ys[last, :3], t=ts[last], steps=steps)
-
-
-# ---- batched (r_i, d) study (paper 003 Fig 12) ----------------------------------------------
-
-
-@eqx.filter_jit
-def _study_kernel(model: RotaryDCDEA, ri: Array, d: Array):
-    def cell(r, dd):
-        m = model.with_geometry(r, dd)
-        sol = equilibrium(m)
-        return sol.q[2], sol.status, m.voltage_max(), m.rest_stretch(), sol.min_eig
-
-    return jax.vmap(cell)(ri, d)
-
-
-def rotary_study(model: RotaryDCDEA, ri: ArrayLike, d: ArrayLike):
-    """Steady angle over the grid ``ri x d`` (m) in ONE vmapped, jitted call.
-
-    Each cell uses its own eq-30 voltage on the model's activation pattern. Returns an
-    ``xarray.Dataset`` with dims ``(ri, d)``: ``theta_deg`` (NaN unless ``status == 0``),
-    ``status`` (codes in ``attrs['status_codes']``), ``voltage`` (V), ``rest_stretch``,
-    ``min_stiffness_eig``.
-    """
-    import xarray as xr
-
-    ri = np.atleast_1d(np.asarray(ri, dtype=np.float64))
-    d = np.atleast_1d(np.asarray(d, dtype=np.float64))
-    if ri.ndim != 1 or d.ndim != 1:
-        raise ValueError("ri and d must be 1-D arrays of metres")
-    RI, D = np.meshgrid(ri, d, indexing="ij")
-    theta, status, volt, lam0, eig = _study_kernel(model, jnp.asarray(RI.ravel()),
-                                                   jnp.asarray(D.ravel()))
-    shape = RI.shape
-    dims = ("ri", "d")
-    status = np.asarray(status).reshape(shape)
-    theta = np.where(status == 0, np.degrees(np.asarray(theta)).reshape(shape), np.nan)
-    valid = status != INVALID
-    return xr.Dataset(
-        {
-            "theta_deg": (dims, theta, {"units": "deg", "long_name": "steady rotation angle"}),
-            "status": (dims, status.astype(np.int32)),
-            "voltage": (dims, np.where(valid, np.asarray(volt).reshape(shape), np.nan),
-                        {"units": "V", "long_name": "eq-30 voltage"}),
-            "rest_stretch": (dims, np.where(valid, np.asarray(lam0).reshape(shape), np.nan),
-                             {"units": "1"}),
-            "min_stiffness_eig": (dims, np.asarray(eig).reshape(shape), {"units": "N m"}),
-        },
-        coords={"ri": ("ri", ri, {"units": "m"}), "d": ("d", d, {"units": "m"})},
-        attrs={"model": "rotary_dcdea", "field_mode": model.field,
-               "pattern": np.asarray(model.pattern).tolist(),
-               "gravity": float(model.gravity),
-               "status_codes": "; ".join(f"{k}: {v}" for k, v in ROTARY_STATUS.items())},
-    )
-
-
-# ---- design optimisation ------------------------------------------------------------------
-
-
-def optimise_design(model: RotaryDCDEA, start=(4e-3, 12e-3),
-                    bounds=((2e-3, 7e-3), (4e-3, 18e-3)), *, maxiter: int = 100,
-                    gtol: float = 1e-9) -> dict:
-    """Maximise the steady angle ``|theta|`` over ``(r_i, d)`` within ``bounds`` (m) by
-    L-BFGS-B with exact gradients (IFT through the equilibrium, :func:`steady_angle`).
-
-    Returns ``dict(r_i, d, theta_deg, nit, success, path)`` (``path``: the iterates, m).
-    """
-    from scipy.optimize import minimize
-
-    lo = np.array([b[0] for b in bounds]) * 1e3
-    hi = np.array([b[1] for b in bounds]) * 1e3
-    fun = _objective_fn()
-    path = []
-
-    def f(x_mm):
-        x = np.clip(x_mm, lo, hi)
-        val, grad = fun(model, jnp.asarray(x * 1e-3))
-        path.append(x * 1e-3)
-        return float(val), np.asarray(grad, dtype=np.float64) * 1e-3
-
-    res = minimize(f, np.asarray(start, dtype=np.float64) * 1e3, jac=True, method="L-BFGS-B",
-                   bounds=list(zip(lo, hi)), options={"maxiter": maxiter, "gtol": gtol,
-                                                      "ftol": 1e-15})
-    x = np.clip(res.x, lo, hi) * 1e-3
-    theta = -float(fun(model, jnp.asarray(x))[0])
-    return {"r_i": float(x[0]), "d": float(x[1]), "theta_deg": theta, "nit": int(res.nit),
-            "success": bool(res.success), "path": np.array(path)}
-
-
-_OBJECTIVE = None
-
-
-def _objective_fn():
-    """Jitted ``(model, [r_i, d]) -> (-|theta| in deg, gradient)`` (built once)."""
-    global _OBJECTIVE
-    if _OBJECTIVE is None:
-        def neg_angle(x, model):
-            return -jnp.abs(jnp.degrees(steady_angle(model.with_geometry(x[0], x[1]))))
-
-        vg = jax.value_and_grad(neg_angle)
-        _OBJECTIVE = eqx.filter_jit(lambda model, x: vg(x, model))
-    return _OBJECTIVE
-
-
-# ---- config ------------------------------------------------------------------------------
-
-GEOMETRY_FIELDS = {
-    "inner_radius": Field(0.0, math.inf, lo_open=True, unit="m"),
-    "outer_radius": Field(0.0, math.inf, lo_open=True, unit="m"),
-    "spacer_half_length": Field(0.0, math.inf, lo_open=True, unit="m"),
-    "spacer_frame_half_thickness": Field(0.0, math.inf, unit="m"),
-    "frame_half_thickness": Field(0.0, math.inf, unit="m"),
-    "thickness": Field(0.0, math.inf, lo_open=True, unit="m"),
-}
-MATERIAL_SCALARS = {
-    "relative_permittivity": Field(1.0, math.inf, unit="(-)"),
-    "eta_v0": Field(0.0, math.inf, unit="Pa s"),
-}
-MATERIAL_LISTS = {
-    "alpha": Field(-100.0, 100.0, unit="(-)"),
-    "beta": Field(unit="Pa"),
-    "gamma": Field(unit="Pa"),
-}
-SPACER_FIELDS = {
-    "mass": Field(0.0, math.inf, lo_open=True, unit="kg"),
-    "inertia": Field(0.0, math.inf, lo_open=True, unit="kg m^2"),
-    "gravity": Field(0.0, 100.0, unit="m/s^2"),
-}
-DRIVE_SCALARS = {
-    "field_max": Field(0.0, math.inf, unit="V/m"),
-    "filter_time": Field(0.0, math.inf, lo_open=True, unit="s"),
-}
-PATTERN_FIELD = Field(0.0, math.inf, unit="x eq-30 voltage")
-
-
-def _list(table: dict, section: str, key: str, field: Field, n: int | None = None) -> Array:
-    name = f"{section}.{key}"
-    if key not in table:
-        raise ConfigError(f"missing key in [{section}]: {key} (a list, each in {field.describe()})")
-    val = table[key]
-    if not isinstance(val, list) or not val:
-        raise ConfigError(f"{name} must be a non-empty list of numbers in {field.describe()}")
-    if n is not None and len(val) != n:
-        raise ConfigError(f"{name} must have {n} entries, got {len(val)}")
-    return _f64([field.check(f"{name}[{i}]", x) for i, x in enumerate(val)])
-
-
-def model_from_config(cfg: dict[str, Any]) -> RotaryDCDEA:
-    """Validated :class:`RotaryDCDEA` from a parsed ``configs/rotary_dcdea.toml``."""
-    allowed = {"model", "field", "geometry", "material", "spacer", "drive"}
-    unknown = sorted(set(cfg) - allowed)
-    if unknown:
-        raise ConfigError(f"unknown top-level key(s): {', '.join(unknown)}; "
-                          f"allowed: {', '.join(sorted(allowed))}")
-    for key in ("geometry", "material", "spacer", "drive"):
-        if key not in cfg:
-            raise ConfigError(f"missing table: [{key}]")
-    field = cfg.get("field", "frozen")
-    if field not in FIELD_MODES:
-        raise ConfigError(f"field = {field!r} is not one of {', '.join(FIELD_MODES)}")
-
-    geo = _section(cfg["geometry"], "geometry", GEOMETRY_FIELDS)
-    mat_tab = dict(cfg["material"])
-    lists = {k: _list(mat_tab, "material", k, fld) for k, fld in MATERIAL_LISTS.items()}
-    if not len({int(v.shape[0]) for v in lists.values()}) == 1:
-        raise ConfigError("material.alpha, material.beta and material.gamma must have the same "
-                          "number of terms N")
-    if not bool(jnp.all(lists["alpha"] != 0)):
-        raise ConfigError("material.alpha entries must be non-zero, allowed range "
-                          "[-100, 0) or (0, 100]")
-    mat = _section({k: v for k, v in mat_tab.items() if k not in MATERIAL_LISTS}, "material",
-                   MATERIAL_SCALARS)
-    spacer = _section(cfg["spacer"], "spacer", SPACER_FIELDS)
-    drv_tab = dict(cfg["drive"])
-    pattern = _list(drv_tab, "drive", "pattern", PATTERN_FIELD, n=4)
-    drv = _section({k: v for k, v in drv_tab.items() if k != "pattern"}, "drive", DRIVE_SCALARS)
-
-    model = RotaryDCDEA(
-        r_i=geo["inner_radius"], r_o=geo["outer_radius"], d=geo["spacer_half_length"],
-        f=geo["spacer_frame_half_thickness"], h=geo["frame_half_thickness"], z0=geo["thickness"],
-        mass=spacer["mass"], inertia=spacer["inertia"], gravity=spacer["gravity"],
-        material=OgdenTypeDE(alpha=tuple(float(a) for a in lists["alpha"]), beta=lists["beta"],
-                             gamma=lists["gamma"], eps_r=mat["relative_permittivity"],
-                             eta_v0=mat["eta_v0"]),
-        field_max=drv["field_max"], pattern=pattern, filter_time=drv["filter_time"], field=field,
-    )
-    check_geometry(model)
-    rest = equilibrium(model, jnp.zeros(4))
-    if int(rest.status) != OK:
-        raise ConfigError("no stable unactuated equilibrium (" + ROTARY_STATUS[int(rest.status)]
-                          + "): check [geometry] and [material] values")
-    return model
-

@@ -69,7 +69,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .caldata import Data, DataError, FrequencyResponse, TimeSeries
+from .._checks import CalibrationError, DataError
+from .data import Data, FrequencyResponse, TimeSeries
 
 METHODS = ("lbfgs", "adam", "de", "lm")
 LOSSES = ("mse", "relative", "log")
@@ -78,10 +79,6 @@ TRANSFORMS = ("log", "linear")
 #: Paper 001 (Sec 4.2) differential-evolution settings.
 DE_PAPER = dict(popsize=240, maxiter=115, mutation=0.6, recombination=0.9,
                 strategy="rand1bin")
-
-
-class CalibrationError(ValueError):
-    """Bad fit arguments (names, bounds, transforms) or a fit that diverged."""
 
 
 # ---- parameters -------------------------------------------------------------------------------
@@ -334,8 +331,8 @@ def frequency_response(model, data: FrequencyResponse, *, cycles: int = 20, aver
     same numbers to ~0.1-1 % (amplitude is the extremum of the samples, not of the Hermite
     interpolant). All rows run as one ``vmap``.
     """
-    from .solver import LawsonRK4, SemilinearTerm
-    from .sweep import make_loadings
+    from ..solver import LawsonRK4, SemilinearTerm
+    from ..studies.loadings import make_loadings
 
     if not (1 <= average <= cycles):
         raise CalibrationError(f"need 1 <= average <= cycles, got {average}, {cycles}")
@@ -381,7 +378,7 @@ def transient_predictor(signal, *, fixed_steps: int | None = None, voltage_tol: 
 
     Not yet exercised by a recovery test (problem (a) of issue 5 is open).
     """
-    from . import viscoelastic as ve
+    from ..studies import transient as ve
 
     checked: set[int] = set()
 
@@ -420,7 +417,7 @@ PREDICTORS: dict[tuple[type, type], Callable] = {}
 
 def default_predict(model, data) -> Callable:
     """The predictor registered for this model and data kind (see :data:`PREDICTORS`)."""
-    from .config import Model
+    from ..models.cone import Model
 
     if isinstance(data, FrequencyResponse) and isinstance(model, Model):
         return frequency_response

@@ -9,7 +9,7 @@ Everything else — membrane law, RC charging, energy bookkeeping — is written
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -194,3 +194,17 @@ class ChargeLinearisation(Linearisation):
         zq = jnp.where(jnp.abs(zq) < 1e-100, 0.0, zq)
         out = eqx.tree_at(lambda s: s.charge, z, zq)
         return eqx.tree_at(lambda s: s.energy_in, out, z.energy_in - self.phi * gain * z.charge)
+
+
+class Model(eqx.Module):
+    """A configured cone DEA: the actuator and its default drive (square-wave voltage, duty).
+
+    What :func:`jaxdea.load_config` returns for the square-wave cones of paper 000, and what
+    the cone studies (:func:`jaxdea.sweep`, :func:`jaxdea.powermap`, :func:`jaxdea.simulate`)
+    take.
+    """
+
+    actuator: ConeActuator
+    voltage: Any  #: drive amplitude, V
+    duty: Any  #: fraction of the period the voltage is on
+    name: str = eqx.field(static=True, default="")

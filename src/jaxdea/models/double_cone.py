@@ -12,7 +12,7 @@ from jaxtyping import Array, ArrayLike
 
 from ..membrane import ConeMembrane
 from ..payloads import LinearViscous
-from .base import ConeActuator
+from .cone import ConeActuator
 
 
 class DCDEA_RR(ConeActuator):

@@ -7,6 +7,8 @@ import argparse
 
 import numpy as np
 
+from .args import check_png, netcdf_out, write_dataset
+
 SIGNALS = ("multisine", "vp1", "vp2", "vp3", "vp4", "sine")
 
 
@@ -43,31 +45,10 @@ def make_signal(kind: str, *, peak: float | None, period: float | None,
     raise ValueError(f"--signal must be one of {', '.join(SIGNALS)}, got {kind!r}")
 
 
-def plot_transient(ds, path: str) -> None:
-    """Displacement vs time and vs voltage (hysteresis loops), as the papers' figures."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
-    t = ds["t"].values
-    ax[0].plot(t, ds["voltage"].values / 1e3)
-    ax[0].set(xlabel="t (s)", ylabel="voltage (kV)")
-    ax[1].plot(t, ds["displacement"].values * 1e3)
-    ax[1].set(xlabel="t (s)", ylabel="displacement (mm)")
-    ax[2].plot(ds["voltage"].values / 1e3, ds["displacement"].values * 1e3, lw=0.8)
-    ax[2].set(xlabel="voltage (kV)", ylabel="displacement (mm)")
-    fig.suptitle(ds.attrs.get("model", ""))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def _simulate(args) -> int:
     import jaxdea
-    from jaxdea.cli import check_png, netcdf_out, write_dataset
-    from jaxdea.viscoelastic import transient
+    from jaxdea.plotting import plot_transient
+    from jaxdea.studies.transient import transient
 
     out = netcdf_out(args.out)
     check_png(args.plot)
@@ -98,7 +79,8 @@ def _simulate(args) -> int:
     return 0 if ds.attrs["ok"] else 1
 
 
-def add_simulate_parser(sub: argparse._SubParsersAction) -> None:
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Add the ``simulate`` command to ``sub``."""
     s = sub.add_parser("simulate", help="transient of a viscoelastic model (papers 001, 002, "
                                         "004) under a drive signal")
     s.add_argument("config", help="TOML config, e.g. configs/gu2017_final.toml")

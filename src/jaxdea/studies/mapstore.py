@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from .sweep import SweepError
+from .._checks import SweepError
 
 SUFFIXES = (".zarr", ".nc")
 MANIFEST = "manifest.json"

@@ -13,7 +13,7 @@ Layouts (all SI; see ``configs/gu2017_*.toml``, ``configs/huang2020_mass_cone.to
                 load = "equilibrium" | "weight"
     [material]  mu0, J0, mu, J, tau          [material] mu1, J1, mu, J, eta
 
-Every number is checked with :class:`jaxdea.config.Field` (errors name ``section.key`` and the
+Every number is checked with :class:`jaxdea.config.fields.Field` (errors name ``section.key`` and the
 allowed range); the unit arrays must have equal, non-zero lengths.
 """
 
@@ -24,8 +24,11 @@ from typing import Any
 
 import jax.numpy as jnp
 
-from ..config import ConfigError, Field, _section
+from .._checks import ConfigError
 from ..materials import EPS0, GentKelvinChain, GentSpringDashpot
+from ..models.mass_cone import MassCone, with_load
+from ..models.planar import PlanarDEA
+from .fields import Field, check_top, number_list, section
 
 PLANAR_GEOMETRY = {
     "L1": Field(0.0, math.inf, lo_open=True, unit="m"),
@@ -59,17 +62,6 @@ KELVIN_ARRAYS = {"mu": Field(0.0, math.inf, lo_open=True, unit="Pa"),
                  "eta": Field(0.0, math.inf, lo_open=True, unit="Pa s (dashpot viscosity)")}
 
 
-def _top(cfg: dict, kind: str) -> None:
-    allowed = {"model", "geometry", "material"}
-    unknown = sorted(set(cfg) - allowed)
-    if unknown:
-        raise ConfigError(f"unknown top-level key(s) for model {kind!r}: {', '.join(unknown)}; "
-                          f"allowed: {', '.join(sorted(allowed))}")
-    for key in ("geometry", "material"):
-        if key not in cfg:
-            raise ConfigError(f"missing table [{key}] for model {kind!r}")
-
-
 def _material(table: Any, scalars: dict, arrays: dict) -> dict:
     if not isinstance(table, dict):
         raise ConfigError("[material] must be a table")
@@ -77,31 +69,22 @@ def _material(table: Any, scalars: dict, arrays: dict) -> dict:
     if unknown:
         raise ConfigError(f"unknown key(s) in [material]: {', '.join(unknown)}; allowed: "
                           f"{', '.join([*scalars, *arrays])}")
-    out = _section({k: v for k, v in table.items() if k in scalars}, "material", scalars)
+    out = section({k: v for k, v in table.items() if k in scalars}, "material", scalars)
     n = None
     for key, field in arrays.items():
-        if key not in table:
-            raise ConfigError(f"missing key material.{key}: a list with one value per unit, "
-                              f"each in {field.describe()}")
-        vals = table[key]
-        if not isinstance(vals, list) or not vals:
-            raise ConfigError(f"material.{key} must be a non-empty list of numbers in "
-                              f"{field.describe()}, got {vals!r}")
+        out[key] = number_list(table, "material", key, field)
         if n is None:
-            n = len(vals)
-        elif len(vals) != n:
-            raise ConfigError(f"material.{key} has {len(vals)} value(s) but "
+            n = len(out[key])
+        elif len(out[key]) != n:
+            raise ConfigError(f"material.{key} has {len(out[key])} value(s) but "
                               f"material.{next(iter(arrays))} has {n}: one per unit")
-        out[key] = jnp.asarray([field.check(f"material.{key}[{i}]", v)
-                                for i, v in enumerate(vals)], dtype=jnp.float64)
     return out
 
 
-def planar_from_config(cfg: dict):
-    from .planar import PlanarDEA
-
-    _top(cfg, "planar_gu2017")
-    geo = _section(cfg["geometry"], "geometry", PLANAR_GEOMETRY)
+def planar_from_config(cfg: dict) -> PlanarDEA:
+    """Validated :class:`~jaxdea.models.planar.PlanarDEA` from a parsed config."""
+    check_top(cfg, "planar_gu2017", ("geometry", "material"))
+    geo = section(cfg["geometry"], "geometry", PLANAR_GEOMETRY)
     mat = _material(cfg["material"], MAXWELL_SCALARS, MAXWELL_ARRAYS)
     model = PlanarDEA(L1=geo["L1"], L2=geo["L2"], H=geo["H"], lam1p=geo["lam1p"],
                       lam2p=geo["lam2p"], eps=geo["relative_permittivity"] * EPS0,
@@ -110,11 +93,10 @@ def planar_from_config(cfg: dict):
     return model
 
 
-def mass_cone_from_config(cfg: dict):
-    from .mass_cone import MassCone, _with_load
-
+def mass_cone_from_config(cfg: dict) -> MassCone:
+    """Validated :class:`~jaxdea.models.mass_cone.MassCone` from a parsed config."""
     kind = cfg.get("model")
-    _top(cfg, kind)
+    check_top(cfg, kind, ("geometry", "material"))
     table = dict(cfg["geometry"]) if isinstance(cfg["geometry"], dict) else cfg["geometry"]
     if not isinstance(table, dict):
         raise ConfigError("[geometry] must be a table")
@@ -122,7 +104,7 @@ def mass_cone_from_config(cfg: dict):
     if load not in LOADS:
         raise ConfigError(f"geometry.load must be one of {', '.join(map(repr, LOADS))}, "
                           f"got {load!r}")
-    geo = _section(table, "geometry", CONE_GEOMETRY)
+    geo = section(table, "geometry", CONE_GEOMETRY)
     if kind == "mass_cone_nouhi":
         material = GentKelvinChain(**_material(cfg["material"], KELVIN_SCALARS, KELVIN_ARRAYS))
     else:
@@ -137,4 +119,4 @@ def mass_cone_from_config(cfg: dict):
                     z1=geo["prestretch_deflection"], load=jnp.asarray(0.0),
                     added_mass=geo["added_mass"], material=material)
     cone.check()  # ValueError -> ConfigError in jaxdea.config.model_from_dict
-    return _with_load(cone, load, float(geo["weight_mass"]), float(geo["gravity"]))
+    return with_load(cone, load, float(geo["weight_mass"]), float(geo["gravity"]))

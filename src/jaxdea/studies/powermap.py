@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 import os
 import shutil
-from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -34,17 +33,16 @@ import numpy as np
 import xarray as xr
 from tqdm.auto import tqdm
 
-from .actuators.base import Loading
-from .config import ConfigError, Model
+from .._checks import (ConfigError, SweepError, check_choice, check_early_exit, check_int,
+                       check_protocol, check_unit_interval, finite_array)
+from ..engine.batch import (DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_heads, chain_successors,
+                            default_lanes, driven_membranes, run_cells, run_from_rest)
+from ..engine.lanes import STATUS, StepControl, check_control
+from ..engine.sharding import cell_sharded
+from ..models.cone import Loading, Model
+from .loadings import DRIVES, Grid, drive_pattern
 from .mapstore import Parts, check_store_path, jaxdea_version, write_store
-from .payloads import LinearViscous
-from .protocol import STATUS, StepControl
-from .sharding import cell_sharded
-from .signals import SquareWave
-from .sweep import (DIRECTIONS, DRIVES, EARLY_EXIT, PROTOCOLS, VARIABLES, SweepError,
-                    _engine, _finite_array, chain_successors, check_early_exit, check_protocol,
-                    chain_heads, default_lanes, drive_pattern, driven_membranes,
-                    run_cells, to_dataset)
+from .sweep import VARIABLES, to_dataset
 #: Default chunk size per device: large enough that the lane pools stay busy while a
 #: low-frequency cell that never settles runs its 100 cycles (~3e5 steps at 1 Hz, against
 #: ~5e3 for the mean cell), small enough for a fine progress bar and cheap resumes. Chunks
@@ -59,7 +57,7 @@ _BYTES_PER_CELL = 8 * len(VARIABLES)
 
 def _axis(name: str, values, *, positive: bool = False, nonnegative: bool = False) -> np.ndarray:
     """A validated, 1-D, strictly increasing axis."""
-    arr = _finite_array(name, values, positive=positive, nonnegative=nonnegative)
+    arr = finite_array(name, values, positive=positive, nonnegative=nonnegative)
     if arr.ndim != 1:
         raise SweepError(f"{name} must be a 1-D axis, got shape {arr.shape}")
     if arr.size > 1 and not np.all(np.diff(arr) > 0):
@@ -95,18 +93,6 @@ def _check_size(shape: tuple[int, ...], dims: tuple[str, ...], store: Path | Non
                              f"disk, {free / 2**30:.1f} GiB free at {store.parent}: shrink {args}")
 
 
-def _check_control(control: StepControl) -> None:
-    if not isinstance(control, StepControl):
-        raise SweepError("control must be a jaxdea.StepControl")
-    if not (math.isfinite(control.rtol) and 0 < control.rtol < 1):
-        raise SweepError(f"rtol = {control.rtol!r} is outside the allowed range (0, 1)")
-    if not (math.isfinite(control.dt_max) and control.dt_max > 0):
-        raise SweepError(f"dt_max = {control.dt_max!r} must be > 0 (allowed range (0, inf))")
-    steps = control.max_steps
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise SweepError(f"max_steps must be an integer >= 1, got {control.max_steps!r}")
-
-
 def _model_settings(model: Model) -> dict[str, Any]:
     """Every parameter of the model as ``{path: value}`` (JSON-able, exact floats)."""
     leaves = jax.tree_util.tree_flatten_with_path(model)[0]
@@ -119,38 +105,11 @@ def _model_settings(model: Model) -> dict[str, Any]:
     return out
 
 
-@dataclass
-class _Grid:
-    """The validated grid and drive: builds the loadings of any range of flat cell indices."""
-
-    axes: dict  # name -> 1-D numpy axis, in output order
-    shape: tuple
-    amplitude: np.ndarray  # (n_phase, n_membranes), V
-    phases: np.ndarray  # (n_phase, n_membranes), rad
-    duty: float
-
-    def loadings(self, idx: np.ndarray) -> Loading:
-        """Loadings of flat (C-order) cells ``idx``; same values as :func:`make_loadings`."""
-        full = self.shape if len(self.shape) == 4 else self.shape + (1,)
-        im, ic, jf, jp = np.unravel_index(idx, full)
-        n = idx.size
-        return Loading(
-            drive=SquareWave(
-                amplitude=jnp.asarray(self.amplitude[jp]),
-                frequency=jnp.asarray(self.axes["f"][jf]),
-                duty=jnp.broadcast_to(jnp.asarray(self.duty), (n,)),
-                phase=jnp.asarray(self.phases[jp]),
-            ),
-            payload=LinearViscous(mass=jnp.asarray(self.axes["M"][im]),
-                                  damping=jnp.asarray(self.axes["c"][ic])),
-        )
-
-
 def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, successor, cycles,
                average, control, tol, early_exit) -> dict[str, np.ndarray]:
     """One chunk; ``successor`` (continuation) is the pattern of one device's slice."""
     if protocol == "continuation" and len(devices) > 1:  # whole chains per device slice
-        res = cell_sharded(_engine, devices)(
+        res = cell_sharded(run_from_rest, devices)(
             model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
             cycles=cycles, average=average, control=control,
             lanes=default_lanes(chain_heads(successor)), early_exit=early_exit,
@@ -162,7 +121,7 @@ def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, suc
     return {k: np.asarray(getattr(res, k)) for k in VARIABLES}
 
 
-def _reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
+def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
     """P_max and f_at_P_max over f, among cells with status 0 (NaN where none is ok)."""
     ok = ds["status"] == 0
     p = ds["P_out"].where(ok, -np.inf)
@@ -215,14 +174,10 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     # ---- validation (nothing is computed before all of this passes) -------------------
     if not isinstance(model, Model):
         raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
-    if protocol not in PROTOCOLS:
-        raise SweepError(f"protocol = {protocol!r} must be one of {', '.join(PROTOCOLS)}")
-    if drive not in DRIVES:
-        raise SweepError(f"drive = {drive!r} must be one of {', '.join(DRIVES)}")
-    if direction not in DIRECTIONS:
-        raise SweepError(f"direction = {direction!r} must be one of {', '.join(DIRECTIONS)}")
-    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and 0 < tol < 1):
-        raise SweepError(f"tol = {tol!r} is outside the allowed range (0, 1)")
+    check_choice("protocol", protocol, PROTOCOLS)
+    check_choice("drive", drive, DRIVES)
+    check_choice("direction", direction, DIRECTIONS)
+    check_unit_interval("tol", tol)
     axes = {"M": _axis("mass", mass, nonnegative=True),
             "c": _axis("damping", damping, nonnegative=True),
             "f": _axis("freq", freq, positive=True)}
@@ -240,10 +195,9 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     check_protocol(cycles, average)
     check_early_exit(early_exit)
     early_exit = None if early_exit is None or protocol == "periodic" else float(early_exit)
-    _check_control(control)
-    if chunk_cells is not None and (isinstance(chunk_cells, bool) or not isinstance(
-            chunk_cells, (int, np.integer)) or chunk_cells < 1):
-        raise SweepError(f"chunk_cells must be an integer >= 1, got {chunk_cells!r}")
+    check_control(control)
+    if chunk_cells is not None:
+        check_int("chunk_cells", chunk_cells, 1)
     store = check_store_path(store) if store is not None else None
     if resume and store is None:
         raise SweepError("resume=True needs a store (the path of the interrupted run's output)")
@@ -270,7 +224,7 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     if protocol == "continuation":
         successor = chain_successors(n_f, n_rest, direction, per_chunk)
     n_chunks = -(-n_cells // chunk)
-    grid = _Grid(axes=axes, shape=shape,
+    grid = Grid(axes=axes, shape=shape,
                  amplitude=np.stack([on * float(model.voltage) for on, _ in patterns]),
                  phases=np.stack([ph for _, ph in patterns]), duty=float(model.duty))
     attrs = dict(model=model.name, drive=drive, protocol=protocol, cycles=int(cycles),
@@ -324,7 +278,7 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     # ---- assemble -----------------------------------------------------------------------
     ds = to_dataset(SimpleNamespace(**results), axes, attrs)
     ds.attrs["status_codes"] = "; ".join(f"{k} = {v}" for k, v in STATUS.items())
-    ds = _reduce_over_f(ds)
+    ds = reduce_over_f(ds)
     if store is not None:
         write_store(ds, store)
         parts.remove()

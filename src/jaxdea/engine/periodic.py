@@ -29,8 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .actuators.base import ConeActuator, ConeState, Loading
-from .protocol import (DYNAMICAL, CycleMetrics, StepControl, periodicity_residual,
+from ..models.cone import ConeActuator, ConeState, Loading
+from .lanes import (DYNAMICAL, CycleMetrics, StepControl, periodicity_residual,
                        run_protocol, select_cells)
 from .sharding import cell_sharded
 

@@ -182,7 +182,7 @@ def transient(model, signal, ts: ArrayLike, *, name: str = "", **kwargs) -> xr.D
 
 @eqx.filter_jit
 def _afr(model, freqs, amplitude, cycles, points, rtol, atol, max_steps):
-    from .signals import MultiSine
+    from ..signals import MultiSine
 
     def one(f):
         signal = MultiSine(jnp.reshape(amplitude, (1,)), jnp.reshape(f, (1,)))

@@ -231,7 +231,7 @@ def huang2020(*, load: str = "equilibrium", eps_r: float = 4.7, rho: float = 100
     mat = GentSpringDashpot(mu0=jnp.asarray(t["mu0"]), J0=jnp.asarray(t["J0"]),
                             mu=jnp.asarray(t["mu"]), J=jnp.asarray(t["J"]),
                             tau=jnp.asarray(t["tau"]), flow="conjugate")
-    return _with_load(MassCone(R=jnp.asarray(0.06), R0=jnp.asarray(0.03), d0=jnp.asarray(200e-6),
+    return with_load(MassCone(R=jnp.asarray(0.06), R0=jnp.asarray(0.03), d0=jnp.asarray(200e-6),
                                eps=jnp.asarray(eps_r * EPS0), rho=jnp.asarray(rho),
                                z1=jnp.asarray(0.0126), load=jnp.asarray(0.0),
                                added_mass=jnp.asarray(added_mass), material=mat),
@@ -246,14 +246,14 @@ def nouhi_kelvin(*, load: str = "equilibrium", eps_r: float = 4.7, rho: float = 
     mat = GentKelvinChain(mu1=jnp.asarray(t["mu1"]), J1=jnp.asarray(t["J1"]),
                           mu=jnp.asarray(t["mu"]), J=jnp.asarray(t["J"]),
                           eta=jnp.asarray(t["eta"]))
-    return _with_load(MassCone(R=jnp.asarray(0.06), R0=jnp.asarray(0.03), d0=jnp.asarray(200e-6),
+    return with_load(MassCone(R=jnp.asarray(0.06), R0=jnp.asarray(0.03), d0=jnp.asarray(200e-6),
                                eps=jnp.asarray(eps_r * EPS0), rho=jnp.asarray(rho),
                                z1=jnp.asarray(0.01256), load=jnp.asarray(0.0),
                                added_mass=jnp.asarray(added_mass), material=mat),
                       load, mass, 9.8)
 
 
-def _with_load(cone: MassCone, load: str, mass: float, g: float) -> MassCone:
+def with_load(cone: MassCone, load: str, mass: float, g: float) -> MassCone:
     if load == "equilibrium":
         P = cone.equilibrium_load()
     elif load == "weight":

@@ -29,9 +29,7 @@ from typing import Any
 
 import numpy as np
 
-
-class DataError(ValueError):
-    """A data file (or data given in code) is malformed: the message names the problem."""
+from .._checks import DataError
 
 
 #: Accepted units per quantity -> factor to SI.

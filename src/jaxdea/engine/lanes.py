@@ -50,9 +50,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .actuators.base import ConeActuator, ConeState, Loading
-from .electrical import charge_rate
-from .solver import LawsonRK4, SemilinearTerm
+from .._checks import SweepError, check_int, check_unit_interval
+from ..electrical import charge_rate
+from ..models.cone import ConeActuator, ConeState, Loading
+from ..solver import LawsonRK4, SemilinearTerm
 
 #: Meaning of the ``status`` values a cell can get (0 = ok).
 STATUS = {
@@ -76,6 +77,19 @@ class StepControl(NamedTuple):
     dt_max: float = 1e-3
     max_steps: int = 5_000_000
 
+
+
+def check_control(control) -> None:
+    """A :class:`StepControl` with ``0 < rtol < 1``, ``dt_max > 0`` and an integer
+    ``max_steps >= 1``; else :class:`~jaxdea.SweepError` naming the field."""
+    if not isinstance(control, StepControl):
+        raise SweepError("control must be a jaxdea.StepControl")
+    check_unit_interval("rtol", control.rtol)
+    dt_max = control.dt_max
+    if isinstance(dt_max, bool) or not isinstance(dt_max, (int, float, np.floating)) \
+            or not (math.isfinite(dt_max) and dt_max > 0):
+        raise SweepError(f"dt_max = {dt_max!r} must be > 0 (allowed range (0, inf))")
+    check_int("max_steps", control.max_steps, 1)
 
 #: Error weights of the states: the tolerance on a state is ``rtol * w * (s + |y|)`` with
 #: ``(s, w)`` below (SI). Charge gets a 10x tighter weight because P_in needs the current

@@ -7,6 +7,8 @@ import functools
 import math
 from pathlib import Path
 
+from .args import check_png
+
 
 def parse_bounds(text: str | None) -> dict[str, tuple[float, float]]:
     """``name=LO:HI,name2=LO:HI`` -> ``{name: (LO, HI)}``."""
@@ -27,11 +29,10 @@ def parse_bounds(text: str | None) -> dict[str, tuple[float, float]]:
 
 def _calibrate(args) -> int:
     import jaxdea
-    from jaxdea.caldata import FrequencyResponse, load_data
-    from jaxdea.calibrate import (calibrate, frequency_response, get_params, make_params,
-                                  plot_fit, write_fitted_config)
-    from jaxdea.cli import check_png
-    from jaxdea.config import Model
+    from jaxdea.calibration import FrequencyResponse, load_data
+    from jaxdea.calibration import (calibrate, frequency_response, get_params, make_params,
+                                    plot_fit, write_fitted_config)
+    from jaxdea.models import Model
 
     out = Path(args.out)
     if out.suffix != ".toml":
@@ -74,7 +75,8 @@ def _calibrate(args) -> int:
     return 0
 
 
-def add_calibrate_parser(sub) -> argparse.ArgumentParser:
+def add_parsers(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the ``calibrate`` command to ``sub``."""
     c = sub.add_parser("calibrate", help="fit model parameters to measured data "
                                          "(L-BFGS, Adam, Gauss-Newton or differential evolution)")
     c.add_argument("config", help="TOML config whose parameters are the start values")

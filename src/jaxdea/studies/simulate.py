@@ -13,9 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 import xarray as xr
 
-from .config import Model
-from .solver import LawsonRK4, SemilinearTerm
-from .sweep import SweepError, check_protocol, make_loadings
+from .._checks import SweepError, check_protocol
+from ..models.cone import Model
+from ..solver import LawsonRK4, SemilinearTerm
+from .loadings import make_loadings
 
 
 @eqx.filter_jit

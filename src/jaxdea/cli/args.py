@@ -1,0 +1,130 @@
+"""What every command shares: range and grid parsing, output-path checks, the protocol options,
+and atomic NetCDF writing."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+def parse_range(text: str, name: str = "--freq") -> np.ndarray:
+    """``MIN:MAX:STEP`` -> inclusive arithmetic range (``MAX`` included when on the grid)."""
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"{name} must be MIN:MAX:STEP, got {text!r}")
+    try:
+        lo, hi, step = (float(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"{name} must be three numbers MIN:MAX:STEP, got {text!r}") from None
+    if not all(math.isfinite(v) for v in (lo, hi, step)):
+        raise ValueError(f"{name} values must be finite, got {text!r}")
+    if step <= 0:
+        raise ValueError(f"{name} STEP must be > 0, got {step:g}")
+    if hi < lo:
+        raise ValueError(f"{name} is empty: MAX = {hi:g} < MIN = {lo:g}")
+    n = int(math.floor((hi - lo) / step + 1e-9)) + 1
+    return np.round(lo + step * np.arange(n), 12)
+
+
+def _min_max_count(parts: list[str], text: str, name: str) -> tuple[float, float, int]:
+    """Finite ``MIN``, ``MAX`` and a count ``N >= 1`` from ``MIN:MAX:N`` pieces."""
+    try:
+        lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
+    except ValueError:
+        raise ValueError(f"{name} must be MIN:MAX:N with N an integer, got {text!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"{name} values must be finite, got {text!r}")
+    if n < 1:
+        raise ValueError(f"{name} is empty: N = {n} must be >= 1")
+    return lo, hi, n
+
+
+def parse_points(text: str, name: str) -> np.ndarray:
+    """``MIN:MAX:N[:log|:lin]`` -> ``N`` points from MIN to MAX inclusive (default log)."""
+    parts = text.split(":")
+    if len(parts) not in (3, 4):
+        raise ValueError(f"{name} must be MIN:MAX:N[:log|:lin], got {text!r}")
+    scale = parts[3] if len(parts) == 4 else "log"
+    if scale not in ("log", "lin"):
+        raise ValueError(f"{name} spacing must be log or lin, got {scale!r}")
+    lo, hi, n = _min_max_count(parts[:3], text, name)
+    if hi < lo:
+        raise ValueError(f"{name} is inverted: MAX = {hi:g} < MIN = {lo:g}")
+    if n == 1 and hi != lo:
+        raise ValueError(f"{name}: N = 1 needs MIN = MAX, got {text!r}")
+    if n > 1 and hi == lo:
+        raise ValueError(f"{name}: MIN = MAX = {lo:g} with N = {n} repeats one value")
+    if scale == "log":
+        if lo <= 0:
+            raise ValueError(f"{name} with log spacing needs MIN > 0, got {lo:g} "
+                             "(use :lin for a range that starts at 0)")
+        return np.geomspace(lo, hi, n)
+    return np.linspace(lo, hi, n)
+
+
+def parse_phases(text: str, name: str = "--phase") -> np.ndarray:
+    """``MIN:MAX:N`` -> ``N`` points in [MIN, MAX) (MAX excluded: 0 and 2 pi are one phase)."""
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"{name} must be MIN:MAX:N, got {text!r}")
+    lo, hi, n = _min_max_count(parts, text, name)
+    if hi <= lo:
+        raise ValueError(f"{name} is empty or inverted: MAX = {hi:g} <= MIN = {lo:g}")
+    return lo + (hi - lo) * np.arange(n) / n
+
+
+def write_dataset(ds, out: Path) -> None:
+    """Write NetCDF atomically (a temp file renamed into place), so an interrupted run never
+    leaves a truncated file under the final name."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".part")
+    ds.to_netcdf(tmp, engine="h5netcdf")
+    os.replace(tmp, out)
+
+
+def netcdf_out(text: str) -> Path:
+    """The ``--out`` path of a command that writes one NetCDF file."""
+    out = Path(text)
+    if out.suffix != ".nc":
+        raise ValueError(f"--out must end in .nc (NetCDF), got {out}")
+    return out
+
+
+def check_png(text: str | None, name: str = "--plot", required: bool = False) -> None:
+    """A PNG path argument; unless ``required``, empty or None means no figure was asked for."""
+    if (required or text) and not (text or "").endswith(".png"):
+        raise ValueError(f"{name} must end in .png, got {text!r}")
+
+
+def protocol_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--protocol", default="paper", choices=["paper", "continuation", "periodic"],
+                   help="paper: N cycles from rest per cell, mean of the last K; continuation: "
+                        "the same, each f starting from the previous f's final state; periodic: "
+                        "periodic steady state (settle, then Newton shooting)")
+    p.add_argument("--direction", default="forward", choices=["forward", "backward"],
+                   help="continuation: up (forward, as paper 000) or down the f axis")
+    p.add_argument("--tol", type=float, default=1e-6,
+                   help="periodic: tolerance on the scaled periodicity residual, (0, 1)")
+    p.add_argument("--early-exit", type=early_exit, default=1e-8, metavar="TOL|off",
+                   help="paper/continuation: stop a cell once its trajectory is periodic to TOL "
+                        "(its remaining cycles would repeat the last one; default 1e-8); "
+                        "'off' runs every cell for all N cycles")
+
+
+def early_exit(text: str) -> float | None:
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--early-exit must be a tolerance in (0, 1) or 'off', got {text!r}") from None
+
+
+def lin_points(text: str, name: str) -> np.ndarray:
+    """``MIN:MAX:N[:lin|:log]`` with linear spacing unless ``:log`` is given."""
+    return parse_points(text + ":lin" if text.count(":") == 2 else text, name)

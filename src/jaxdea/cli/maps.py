@@ -1,0 +1,158 @@
+"""``jaxdea sweep``, ``jaxdea powermap`` and ``jaxdea plot``: the cone power studies."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from .args import (check_png, netcdf_out, parse_phases, parse_points, parse_range,
+                   protocol_args, write_dataset)
+
+
+def _sweep(args) -> int:
+    import jaxdea
+    from jaxdea.plotting import plot_sweep
+
+    out = netcdf_out(args.out)
+    freq = parse_range(args.freq)
+    model = jaxdea.load_config(args.config)
+    control = jaxdea.StepControl(rtol=args.rtol)
+    print(f"jaxdea sweep: {model.name}, drive {args.drive}, {freq.size} frequencies "
+          f"{freq[0]:g}-{freq[-1]:g} Hz, protocol {args.protocol}, {args.cycles} cycles "
+          f"(average last {args.average})", flush=True)
+    ds = jaxdea.sweep(model, mass=args.mass, damping=args.damping, freq=freq, drive=args.drive,
+                      phase=args.phase, cycles=args.cycles, average=args.average,
+                      control=control, protocol=args.protocol, direction=args.direction,
+                      tol=args.tol, early_exit=args.early_exit)
+    write_dataset(ds, out)
+    i = int(np.argmax(ds["P_out"].values))
+    bad = int((ds["status"] != 0).sum())
+    print(f"wrote {out}: P_out max {1e3 * float(ds['P_out'][i]):.3f} mW at "
+          f"{float(ds['f'][i]):g} Hz; {bad} failed cell(s)")
+    if args.plot:
+        plot_sweep(ds, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _powermap(args) -> int:
+    import jax
+
+    import jaxdea
+    from jaxdea.studies.mapstore import check_store_path
+    from jaxdea.plotting import plot_pmax
+
+    out = check_store_path(args.out)
+    mass = parse_points(args.mass, "--mass")
+    damping = parse_points(args.damping, "--damping")
+    freq = parse_range(args.freq, "--freq")
+    phase = parse_phases(args.phase) if args.phase is not None else None
+    check_png(args.plot)
+    model = jaxdea.load_config(args.config)
+    n = mass.size * damping.size * freq.size * (1 if phase is None else phase.size)
+    print(f"jaxdea powermap: {model.name}, drive {args.drive}, protocol {args.protocol}: "
+          f"{mass.size} M x {damping.size} c x {freq.size} f"
+          + (f" x {phase.size} phase" if phase is not None else "")
+          + f" = {n} cells, {args.cycles} cycles (average last {args.average}), "
+          + (f"{args.direction} continuation, " if args.protocol == "continuation" else "")
+          + f"{len(jax.devices())} device(s)", flush=True)
+    ds = jaxdea.powermap(model, mass=mass, damping=damping, freq=freq, phase=phase,
+                         drive=args.drive, protocol=args.protocol, cycles=args.cycles,
+                         average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
+                         direction=args.direction, tol=args.tol, early_exit=args.early_exit,
+                         chunk_cells=args.chunk,
+                         store=out, resume=args.resume, progress=not args.no_progress)
+    print(f"chunks: {ds.attrs['chunks_computed']} computed, {ds.attrs['chunks_reused']} reused",
+          flush=True)
+    bad = int((ds["status"] != 0).sum())
+    pmax = ds["P_max"]
+    if bool(pmax.notnull().any()):
+        flat = int(np.argmax(np.nan_to_num(pmax.values, nan=-np.inf)))
+        best = dict(zip(pmax.dims, np.unravel_index(flat, pmax.shape)))
+        at = {k: float(ds[k][v]) for k, v in best.items()}
+        print(f"wrote {out}: P_max {1e3 * float(pmax.isel(best)):.3f} mW at "
+              f"M = {1e3 * at['M']:g} g, c = {at['c']:g} N s/m"
+              + (f", phase = {at['phase']:g} rad" if "phase" in at else "")
+              + f", f = {float(ds['f_at_P_max'].isel(best)):g} Hz; {bad} failed cell(s)")
+    else:
+        print(f"wrote {out}: no cell finished with status 0; {bad} failed cell(s)")
+    if args.plot:
+        plot_pmax(ds, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _plot(args) -> int:
+    from jaxdea.studies.mapstore import open_map
+    from jaxdea.plotting import plot_pmax, plot_pmax_ratio, plot_pout_fc
+
+    check_png(args.out, "--out", required=True)
+    if args.kind == "ratio" and args.other is None:
+        raise ValueError("--kind ratio needs --other MAP2 (the denominator map)")
+    if args.kind != "ratio" and args.other is not None:
+        raise ValueError("--other is only used with --kind ratio")
+    if args.mass is not None and args.kind != "pout-f-c":
+        raise ValueError("--mass is only used with --kind pout-f-c")
+    ds = open_map(args.map)
+    if args.kind == "pmax":
+        plot_pmax(ds, args.out)
+    elif args.kind == "pout-f-c":
+        plot_pout_fc(ds, args.out, mass=args.mass)
+    else:
+        plot_pmax_ratio(ds, open_map(args.other), args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Add the ``sweep``, ``powermap`` and ``plot`` commands to ``sub``."""
+    s = sub.add_parser("sweep", help="frequency sweep of one payload (paper 000 protocol)")
+    s.add_argument("config", help="TOML config, e.g. configs/dcdea_ls.toml")
+    s.add_argument("--mass", type=float, required=True, help="payload mass M, kg")
+    s.add_argument("--damping", type=float, required=True, help="payload damping c, N s/m")
+    s.add_argument("--freq", required=True, help="FMIN:FMAX:DF in Hz (inclusive)")
+    s.add_argument("--drive", default="A", choices=["A", "B", "both"])
+    s.add_argument("--phase", type=float, default=0.0, help="phase of B vs A, rad [0, 2 pi)")
+    s.add_argument("--cycles", type=int, default=100, help="drive periods per frequency")
+    s.add_argument("--average", type=int, default=5, help="last periods averaged")
+    s.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
+    protocol_args(s)
+    s.add_argument("--out", required=True, help="output NetCDF file (.nc)")
+    s.add_argument("--plot", help="optional PNG: amplitude and P_out against f (Fig 6 style)")
+    s.set_defaults(func=_sweep)
+
+    m = sub.add_parser("powermap", help="power map over payload mass x damping x frequency")
+    m.add_argument("config", help="TOML config, e.g. configs/dcdea_ls.toml")
+    m.add_argument("--mass", required=True,
+                   help="MIN:MAX:N[:log|:lin] payload masses M, kg (N points, default log)")
+    m.add_argument("--damping", required=True,
+                   help="MIN:MAX:N[:log|:lin] payload dampings c, N s/m (N points, default log)")
+    m.add_argument("--freq", required=True, help="FMIN:FMAX:DF in Hz (inclusive)")
+    m.add_argument("--phase", help="MIN:MAX:N phases of B vs A, rad: N points in [MIN, MAX) "
+                                   "(drive both only)")
+    m.add_argument("--drive", default="A", choices=["A", "B", "both"])
+    m.add_argument("--cycles", type=int, default=100, help="drive periods per cell")
+    m.add_argument("--average", type=int, default=5, help="last periods averaged")
+    m.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
+    protocol_args(m)
+    m.add_argument("--chunk", type=int, help="cells per compiled call (default: equal chunks "
+                   "of at most 4096 cells per device)")
+    m.add_argument("--out", required=True, help="output store: .zarr (Zarr) or .nc (NetCDF)")
+    m.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run of the same settings (reuse its chunks)")
+    m.add_argument("--plot", help="optional PNG of P_max over M x c (paper 000 Fig 7 style)")
+    m.add_argument("--no-progress", action="store_true", help="no progress bar")
+    m.set_defaults(func=_powermap)
+
+    g = sub.add_parser("plot", help="figures of a power map (paper 000 Figs 7, 9, 10)")
+    g.add_argument("map", help="power-map store (.zarr or .nc)")
+    g.add_argument("--kind", required=True, choices=["pmax", "pout-f-c", "ratio"],
+                   help="pmax: P_max over M x c (Fig 7); pout-f-c: P_out over f x c at one M "
+                        "(Fig 9); ratio: P_max of MAP / P_max of --other (Fig 10)")
+    g.add_argument("--other", help="second map for --kind ratio (denominator)")
+    g.add_argument("--mass", type=float, help="payload mass for pout-f-c, kg (nearest M; "
+                                              "default: the M of the largest P_max)")
+    g.add_argument("--out", required=True, help="output PNG")
+    g.set_defaults(func=_plot)

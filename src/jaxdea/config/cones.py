@@ -1,0 +1,131 @@
+"""Loader of the square-wave cones of paper 000 (``scdea_ls``, ``dcdea_rr``, ``dcdea_ls``).
+
+Layout (SI; see ``configs/scdea_ls.toml``)::
+
+    model = "dcdea_ls"
+    [membrane]  inner_radius, outer_radius, thickness, prestretch, relative_permittivity,
+                electrode_thickness, electrode_resistance
+    [membrane.dielectric]  mu_A, J_A, mu_B, J_B, tau      (GentMaxwell)
+    [membrane.electrode]   mu_A, J_A, mu_B, J_B, tau
+    [actuator]  disk_mass and the configuration's own fields (ACTUATOR_FIELDS)
+    [drive]     voltage, duty
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax.numpy as jnp
+
+from .._checks import ConfigError
+from ..materials import GentMaxwell, gent_denominator
+from ..membrane import ConeMembrane
+from ..models import DCDEA_LS, DCDEA_RR, SCDEA_LS, ConeActuator, Model
+from .fields import Field, section, subtables
+
+MEMBRANE_FIELDS = {
+    "inner_radius": Field(0.0, math.inf, lo_open=True, unit="m"),
+    "outer_radius": Field(0.0, math.inf, lo_open=True, unit="m"),
+    "thickness": Field(0.0, math.inf, lo_open=True, unit="m"),
+    "prestretch": Field(1.0, 10.0, unit="(-)"),
+    "relative_permittivity": Field(1.0, math.inf, unit="(-)"),
+    "electrode_thickness": Field(0.0, math.inf, unit="m"),
+    "electrode_resistance": Field(0.0, math.inf, lo_open=True, unit="ohm"),
+}
+MATERIAL_FIELDS = {
+    "mu_A": Field(0.0, math.inf, lo_open=True, unit="Pa"),
+    "J_A": Field(0.0, math.inf, lo_open=True, unit="(-)"),
+    "mu_B": Field(0.0, math.inf, lo_open=True, unit="Pa"),
+    "J_B": Field(0.0, math.inf, lo_open=True, unit="(-)"),
+    "tau": Field(0.0, math.inf, lo_open=True, unit="s"),
+}
+ACTUATOR_FIELDS = {
+    "scdea_ls": {
+        "disk_mass": Field(0.0, math.inf, lo_open=True, unit="kg"),
+        "spring_stiffness": Field(0.0, math.inf, unit="N/m"),
+        "deflection": Field(0.0, math.inf, lo_open=True, unit="m"),
+    },
+    "dcdea_rr": {
+        "disk_mass": Field(0.0, math.inf, lo_open=True, unit="kg"),
+        "rod_length": Field(0.0, math.inf, lo_open=True, unit="m"),
+    },
+    "dcdea_ls": {
+        "disk_mass": Field(0.0, math.inf, lo_open=True, unit="kg"),
+        "spring_stiffness": Field(0.0, math.inf, unit="N/m"),
+        "deflection": Field(0.0, math.inf, lo_open=True, unit="m"),
+    },
+}
+DRIVE_FIELDS = {
+    "voltage": Field(0.0, math.inf, unit="V"),
+    "duty": Field(0.0, 1.0, lo_open=True, hi_open=True, unit="(-)"),
+}
+ACTUATOR_CLASSES: dict[str, type[ConeActuator]] = {
+    "scdea_ls": SCDEA_LS,
+    "dcdea_rr": DCDEA_RR,
+    "dcdea_ls": DCDEA_LS,
+}
+
+
+def cone_from_config(cfg: dict[str, Any]) -> Model:
+    """Validated cone :class:`~jaxdea.models.Model` from a parsed config dictionary."""
+    allowed = {"model", "membrane", "actuator", "drive"}
+    unknown = sorted(set(cfg) - allowed)
+    if unknown:
+        raise ConfigError(f"unknown top-level key(s): {', '.join(unknown)}; "
+                          f"allowed: {', '.join(sorted(allowed))}")
+    for key in sorted(allowed):
+        if key not in cfg:
+            raise ConfigError(f"missing top-level key: {key}")
+    kind = cfg["model"]
+
+    flat, nested = subtables(cfg["membrane"], "membrane", ("dielectric", "electrode"))
+    geo = section(flat, "membrane", MEMBRANE_FIELDS)
+    if not geo["outer_radius"] > geo["inner_radius"]:
+        raise ConfigError(
+            f"membrane.outer_radius = {float(geo['outer_radius']):g} m must be greater than "
+            f"membrane.inner_radius = {float(geo['inner_radius']):g} m (allowed range "
+            f"({float(geo['inner_radius']):g}, inf) m)"
+        )
+    dielectric = GentMaxwell(**section(nested["dielectric"], "membrane.dielectric",
+                                        MATERIAL_FIELDS))
+    electrode = GentMaxwell(**section(nested["electrode"], "membrane.electrode",
+                                       MATERIAL_FIELDS))
+    membrane = ConeMembrane(**geo, dielectric=dielectric, electrode=electrode)
+    act = section(cfg["actuator"], "actuator", ACTUATOR_FIELDS[kind])
+    actuator = ACTUATOR_CLASSES[kind](membrane=membrane, **act)
+    drive = section(cfg["drive"], "drive", DRIVE_FIELDS)
+    _check_rest_state(actuator)
+    return Model(actuator=actuator, voltage=drive["voltage"], duty=drive["duty"], name=kind)
+
+
+def _check_rest_state(actuator: ConeActuator) -> None:
+    """The Gent springs must be below lock-up at the static equilibrium (J above I1 - 3)."""
+    mem = actuator.membrane
+    design = getattr(actuator, "deflection", None)
+    if design is not None:  # the spring preload is computed at the design deflection d0
+        d = jnp.stack([design, -design])
+        _check_gent(mem, d)
+    q = actuator.equilibrium()
+    if not bool(jnp.all(jnp.isfinite(q))):
+        raise ConfigError("no static equilibrium found: check actuator and membrane values")
+    _check_gent(mem, actuator.deflections(q))
+
+
+def _check_gent(mem: ConeMembrane, d) -> None:
+    """Both equilibrium Gent springs must be below lock-up at deflections ``d``."""
+    lam_m1, lam_m2, lam_el1, *_ = mem.kinematics(d)
+    checks = {
+        "membrane.dielectric.J_A": (mem.dielectric.J_A, lam_m1, lam_m2),
+        "membrane.electrode.J_A": (mem.electrode.J_A, lam_el1, 1.0),
+    }
+    for name, (J, l1, l2) in checks.items():
+        denom = gent_denominator(l1, l2, J)
+        if not bool(jnp.all(denom > 0)):
+            i1 = float(jnp.max(J * (1.0 - denom)))  # I1 - 3
+            raise ConfigError(
+                f"{name} is below the stretch invariant at rest (I1 - 3 = {i1:.3g}): the Gent "
+                f"spring is locked up; allowed range ({i1:.3g}, inf)"
+            )
+
+

@@ -1,0 +1,86 @@
+"""Loadings (drive + payload per cell) of a study's grid, built once for sweeps and maps."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import SweepError, check_choice, finite_array
+from ..models.cone import Loading, Model
+from ..payloads import LinearViscous
+from ..signals import SquareWave
+
+DRIVES = ("A", "B", "both")
+
+
+def drive_pattern(model: Model, drive: str, phase: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-membrane amplitude multipliers and phases for a drive case.
+
+    ``"A"``: membrane A only (the single cone's one membrane is "A"); ``"B"``: membrane B only;
+    ``"both"``: A and B, B delayed by ``phase`` rad (0 = in-phase, pi = antiphase).
+    """
+    names = model.actuator.membrane_names
+    check_choice("drive", drive, DRIVES)
+    if drive != "A" and len(names) == 1:
+        raise SweepError(f"drive = {drive!r}: {model.name or 'this model'} has one membrane; "
+                         "use drive='A'")
+    if not math.isfinite(phase):
+        raise SweepError(f"phase must be finite (allowed range [0, 2 pi)), got {phase!r}")
+    if not 0.0 <= phase < 2.0 * math.pi:
+        raise SweepError(f"phase = {phase!r} rad is outside the allowed range [0, 2 pi)")
+    on = np.array([drive in ("both", n) for n in names], dtype=float)
+    phases = np.where(np.array(names) == "B", phase if drive == "both" else 0.0, 0.0)
+    return on, phases
+
+
+def cell_loadings(amplitude, frequency, duty, phase, mass, damping) -> Loading:
+    """Loadings of ``n`` cells from per-cell arrays: ``amplitude`` and ``phase`` ``(n,
+    n_membranes)`` (V, rad), ``frequency``, ``mass``, ``damping`` ``(n,)`` (Hz, kg, N s/m),
+    ``duty`` a scalar."""
+    n = np.shape(frequency)[0]
+    return Loading(
+        drive=SquareWave(
+            amplitude=jnp.asarray(amplitude),
+            frequency=jnp.asarray(frequency),
+            duty=jnp.broadcast_to(jnp.asarray(duty), (n,)),
+            phase=jnp.asarray(phase),
+        ),
+        payload=LinearViscous(mass=jnp.asarray(mass), damping=jnp.asarray(damping)),
+    )
+
+
+def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
+                  phase: float = 0.0) -> Loading:
+    """Loadings for the broadcast of ``mass``, ``damping``, ``freq`` (flattened, C order)."""
+    mass = finite_array("mass", mass, nonnegative=True)
+    damping = finite_array("damping", damping, nonnegative=True)
+    freq = finite_array("freq", freq, positive=True)
+    on, phases = drive_pattern(model, drive, float(phase))
+    m, c, f = (a.ravel() for a in np.broadcast_arrays(mass, damping, freq))
+    n = f.size
+    # jnp arithmetic on the model's voltage and duty: they may be traced (calibration)
+    amp = jnp.broadcast_to(jnp.asarray(on)[None, :] * model.voltage, (n, on.size))
+    return cell_loadings(amp, f, model.duty, jnp.broadcast_to(jnp.asarray(phases), (n, on.size)),
+                         m, c)
+
+
+@dataclass
+class Grid:
+    """A validated (M, c, f[, phase]) grid and its drive: builds the loadings of any range of
+    flat (C-order) cell indices, the same values as :func:`make_loadings`."""
+
+    axes: dict  # name -> 1-D numpy axis, in output order
+    shape: tuple
+    amplitude: np.ndarray  # (n_phase, n_membranes), V
+    phases: np.ndarray  # (n_phase, n_membranes), rad
+    duty: float
+
+    def loadings(self, idx: np.ndarray) -> Loading:
+        """Loadings of flat (C-order) cells ``idx``."""
+        full = self.shape if len(self.shape) == 4 else self.shape + (1,)
+        im, ic, jf, jp = np.unravel_index(idx, full)
+        return cell_loadings(self.amplitude[jp], self.axes["f"][jf], self.duty,
+                             self.phases[jp], self.axes["M"][im], self.axes["c"][ic])
