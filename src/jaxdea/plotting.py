@@ -41,11 +41,7 @@ def plot_sweep(ds: xr.Dataset, path: str | Path | None = None):
     ax1.set_title(title, fontsize=10)
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=130)
-        plt.close(fig)
-    return fig
+    return _save(fig, path)
 
 
 # ---- power maps (paper 000 Figs 7, 9, 10) ---------------------------------------------------
@@ -220,11 +216,7 @@ def plot_rotary_study(ds: xr.Dataset, path: str | Path | None = None):
     a = ds.attrs
     ax.set_title(f"rotary DC-DEA steady angle ({a.get('field_mode', '')} field, "
                  f"g = {a.get('gravity', 0.0):g} m/s$^2$)", fontsize=10)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=130)
-        plt.close(fig)
-    return fig
+    return _save(fig, path)
 
 
 def plot_transient(ds: xr.Dataset, path: str | Path | None = None):
@@ -238,5 +230,4 @@ def plot_transient(ds: xr.Dataset, path: str | Path | None = None):
     ax[2].plot(ds["voltage"].values / 1e3, ds["displacement"].values * 1e3, lw=0.8)
     ax[2].set(xlabel="voltage (kV)", ylabel="displacement (mm)")
     fig.suptitle(ds.attrs.get("model", ""))
-    fig.tight_layout()
     return _save(fig, path)

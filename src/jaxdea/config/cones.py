@@ -22,7 +22,7 @@ from .._checks import ConfigError
 from ..materials import GentMaxwell, gent_denominator
 from ..membrane import ConeMembrane
 from ..models import DCDEA_LS, DCDEA_RR, SCDEA_LS, ConeActuator, Model
-from .fields import Field, section, subtables
+from .fields import Field, check_top, section, subtables
 
 MEMBRANE_FIELDS = {
     "inner_radius": Field(0.0, math.inf, lo_open=True, unit="m"),
@@ -69,14 +69,7 @@ ACTUATOR_CLASSES: dict[str, type[ConeActuator]] = {
 
 def cone_from_config(cfg: dict[str, Any]) -> Model:
     """Validated cone :class:`~jaxdea.models.Model` from a parsed config dictionary."""
-    allowed = {"model", "membrane", "actuator", "drive"}
-    unknown = sorted(set(cfg) - allowed)
-    if unknown:
-        raise ConfigError(f"unknown top-level key(s): {', '.join(unknown)}; "
-                          f"allowed: {', '.join(sorted(allowed))}")
-    for key in sorted(allowed):
-        if key not in cfg:
-            raise ConfigError(f"missing top-level key: {key}")
+    check_top(cfg, cfg["model"], ("membrane", "actuator", "drive"))
     kind = cfg["model"]
 
     flat, nested = subtables(cfg["membrane"], "membrane", ("dielectric", "electrode"))
