@@ -86,18 +86,38 @@ def write_dataset(ds, out: Path) -> None:
     os.replace(tmp, out)
 
 
+def check_writable(path: Path, name: str, directory_ok: bool = False) -> Path:
+    """``path`` can be written, checked before any compute: it is not a directory (unless
+    ``directory_ok``: a store that the writer replaces or resumes), and its nearest existing
+    ancestor is a writable directory (missing folders are created when it is written).
+    Raises ``ValueError`` naming the option otherwise."""
+    if path.is_dir() and not directory_ok:
+        raise ValueError(f"{name} {path} is a directory: give a file name")
+    parent = path.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"{name} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"{name} {path}: folder {parent} is not writable")
+    return path
+
+
 def netcdf_out(text: str) -> Path:
-    """The ``--out`` path of a command that writes one NetCDF file."""
+    """The ``--out`` path of a command that writes one NetCDF file (checked writable)."""
     out = Path(text)
     if out.suffix != ".nc":
         raise ValueError(f"--out must end in .nc (NetCDF), got {out}")
-    return out
+    return check_writable(out, "--out")
 
 
 def check_png(text: str | None, name: str = "--plot", required: bool = False) -> None:
-    """A PNG path argument; unless ``required``, empty or None means no figure was asked for."""
+    """A PNG path argument (checked writable); unless ``required``, empty or None means no
+    figure was asked for."""
     if (required or text) and not (text or "").endswith(".png"):
         raise ValueError(f"{name} must end in .png, got {text!r}")
+    if text:
+        check_writable(Path(text), name)
 
 
 def protocol_args(p: argparse.ArgumentParser) -> None:

@@ -11,14 +11,22 @@ from . import calibrate, maps, rotary, simulate
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``jaxdea`` parser with every command group's sub-commands."""
+    from jaxdea import __version__
+
     p = argparse.ArgumentParser(prog="jaxdea", description=__doc__)
+    p.add_argument("--version", action="version", version=f"jaxdea {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     for group in (maps, rotary, calibrate, simulate):
         group.add_parsers(sub)
+    for command in sub.choices.values():  # every --help shows the defaults
+        command.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``) and return the exit code: 0 on
+    success, 2 with one line on stderr for a user error (bad argument, config, data or path),
+    130 when interrupted."""
     args = build_parser().parse_args(argv)
     from jaxdea._checks import JaxdeaError
     from jaxdea.engine.sharding import use_cpu_cores
@@ -28,7 +36,10 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return args.func(args)
-    except (JaxdeaError, ValueError, NotImplementedError) as exc:
+    except KeyboardInterrupt:
+        print("\njaxdea: interrupted", file=sys.stderr)
+        return 130
+    except (JaxdeaError, ValueError, NotImplementedError, OSError) as exc:
         print(f"jaxdea: error: {exc}", file=sys.stderr)
         return 2
 

@@ -3,18 +3,32 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
-from .args import (check_png, netcdf_out, parse_phases, parse_points, parse_range,
-                   protocol_args, write_dataset)
+from .args import (
+    check_png,
+    check_writable,
+    netcdf_out,
+    parse_phases,
+    parse_points,
+    parse_range,
+    protocol_args,
+    write_dataset,
+)
 
+
+#: What the drive cases mean (paper 000): which membranes the square wave drives.
+DRIVE_HELP = ("A: membrane A only (the single cone's one membrane; the double cones' first); "
+              "B: membrane B only (double cones); both: A and B, B delayed by --phase rad")
 
 def _sweep(args) -> int:
     import jaxdea
     from jaxdea.plotting import plot_sweep
 
     out = netcdf_out(args.out)
+    check_png(args.plot)
     freq = parse_range(args.freq)
     model = jaxdea.load_config(args.config)
     control = jaxdea.StepControl(rtol=args.rtol)
@@ -26,10 +40,14 @@ def _sweep(args) -> int:
                       control=control, protocol=args.protocol, direction=args.direction,
                       tol=args.tol, early_exit=args.early_exit)
     write_dataset(ds, out)
-    i = int(np.argmax(ds["P_out"].values))
+    ok = (ds["status"].values == 0) & np.isfinite(ds["P_out"].values)
     bad = int((ds["status"] != 0).sum())
-    print(f"wrote {out}: P_out max {1e3 * float(ds['P_out'][i]):.3f} mW at "
-          f"{float(ds['f'][i]):g} Hz; {bad} failed cell(s)")
+    if ok.any():  # the maximum among the cells that finished (failed cells may hold nan/inf)
+        i = int(np.argmax(np.where(ok, ds["P_out"].values, -np.inf)))
+        print(f"wrote {out}: P_out max {1e3 * float(ds['P_out'][i]):.3f} mW at "
+              f"{float(ds['f'][i]):g} Hz; {bad} failed cell(s)")
+    else:
+        print(f"wrote {out}: no cell finished with status 0; {bad} failed cell(s)")
     if args.plot:
         plot_sweep(ds, args.plot)
         print(f"wrote {args.plot}")
@@ -41,9 +59,8 @@ def _powermap(args) -> int:
 
     import jaxdea
     from jaxdea.studies.mapstore import check_store_path
-    from jaxdea.plotting import plot_pmax
 
-    out = check_store_path(args.out)
+    out = check_writable(check_store_path(args.out), "--out", directory_ok=True)
     mass = parse_points(args.mass, "--mass")
     damping = parse_points(args.damping, "--damping")
     freq = parse_range(args.freq, "--freq")
@@ -57,14 +74,31 @@ def _powermap(args) -> int:
           + f" = {n} cells, {args.cycles} cycles (average last {args.average}), "
           + (f"{args.direction} continuation, " if args.protocol == "continuation" else "")
           + f"{len(jax.devices())} device(s)", flush=True)
-    ds = jaxdea.powermap(model, mass=mass, damping=damping, freq=freq, phase=phase,
-                         drive=args.drive, protocol=args.protocol, cycles=args.cycles,
-                         average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
-                         direction=args.direction, tol=args.tol, early_exit=args.early_exit,
-                         chunk_cells=args.chunk,
-                         store=out, resume=args.resume, progress=not args.no_progress)
+    try:
+        ds = _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out)
+    except KeyboardInterrupt:
+        print(f"\njaxdea powermap: interrupted. Finished chunks are kept in {out}.parts; "
+              "to go on from them, run the same command with --resume:\n  "
+              + " ".join(sys.argv if "--resume" in sys.argv else [*sys.argv, "--resume"]),
+              file=sys.stderr)
+        return 130
     print(f"chunks: {ds.attrs['chunks_computed']} computed, {ds.attrs['chunks_reused']} reused",
           flush=True)
+    return _summarise_map(ds, out, args.plot)
+
+
+def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out):
+    return jaxdea.powermap(model, mass=mass, damping=damping, freq=freq, phase=phase,
+                           drive=args.drive, protocol=args.protocol, cycles=args.cycles,
+                           average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
+                           direction=args.direction, tol=args.tol, early_exit=args.early_exit,
+                           chunk_cells=args.chunk, store=out, resume=args.resume,
+                           progress=not args.no_progress)
+
+
+def _summarise_map(ds, out, plot) -> int:
+    from jaxdea.plotting import plot_pmax
+
     bad = int((ds["status"] != 0).sum())
     pmax = ds["P_max"]
     if bool(pmax.notnull().any()):
@@ -77,15 +111,18 @@ def _powermap(args) -> int:
               + f", f = {float(ds['f_at_P_max'].isel(best)):g} Hz; {bad} failed cell(s)")
     else:
         print(f"wrote {out}: no cell finished with status 0; {bad} failed cell(s)")
-    if args.plot:
-        plot_pmax(ds, args.plot)
-        print(f"wrote {args.plot}")
+    if plot and bool(pmax.notnull().any()):
+        plot_pmax(ds, plot)
+        print(f"wrote {plot}")
+    elif plot:
+        print(f"no plot written to {plot}: no cell finished with status 0", file=sys.stderr)
+        return 1
     return 0
 
 
 def _plot(args) -> int:
-    from jaxdea.studies.mapstore import open_map
     from jaxdea.plotting import plot_pmax, plot_pmax_ratio, plot_pout_fc
+    from jaxdea.studies.mapstore import open_map
 
     check_png(args.out, "--out", required=True)
     if args.kind == "ratio" and args.other is None:
@@ -113,7 +150,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--mass", type=float, required=True, help="payload mass M, kg")
     s.add_argument("--damping", type=float, required=True, help="payload damping c, N s/m")
     s.add_argument("--freq", required=True, help="FMIN:FMAX:DF in Hz (inclusive)")
-    s.add_argument("--drive", default="A", choices=["A", "B", "both"])
+    s.add_argument("--drive", default="A", choices=["A", "B", "both"], help=DRIVE_HELP)
     s.add_argument("--phase", type=float, default=0.0, help="phase of B vs A, rad [0, 2 pi)")
     s.add_argument("--cycles", type=int, default=100, help="drive periods per frequency")
     s.add_argument("--average", type=int, default=5, help="last periods averaged")
@@ -132,7 +169,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--freq", required=True, help="FMIN:FMAX:DF in Hz (inclusive)")
     m.add_argument("--phase", help="MIN:MAX:N phases of B vs A, rad: N points in [MIN, MAX) "
                                    "(drive both only)")
-    m.add_argument("--drive", default="A", choices=["A", "B", "both"])
+    m.add_argument("--drive", default="A", choices=["A", "B", "both"], help=DRIVE_HELP)
     m.add_argument("--cycles", type=int, default=100, help="drive periods per cell")
     m.add_argument("--average", type=int, default=5, help="last periods averaged")
     m.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")

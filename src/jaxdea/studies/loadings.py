@@ -8,12 +8,24 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import SweepError, check_choice, finite_array
+from .._checks import ConfigError, SweepError, check_choice, finite_array
 from ..models.cone import Loading, Model
 from ..payloads import LinearViscous
 from ..signals import SquareWave
 
 DRIVES = ("A", "B", "both")
+
+
+def check_cone_model(model) -> None:
+    """``model`` is a square-wave cone :class:`~jaxdea.models.Model` (what the cone studies
+    run); else :class:`~jaxdea.ConfigError` saying what was given."""
+    if isinstance(model, Model):
+        return
+    if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
+        raise ConfigError(f"model must be a loaded model, got the path {model!r}: use "
+                          "jaxdea.load_config(path) first")
+    raise ConfigError("model must be a square-wave cone from jaxdea.load_config (model = "
+                      f"scdea_ls, dcdea_rr or dcdea_ls), got {type(model).__name__}")
 
 
 def drive_pattern(model: Model, drive: str, phase: float) -> tuple[np.ndarray, np.ndarray]:
@@ -22,6 +34,7 @@ def drive_pattern(model: Model, drive: str, phase: float) -> tuple[np.ndarray, n
     ``"A"``: membrane A only (the single cone's one membrane is "A"); ``"B"``: membrane B only;
     ``"both"``: A and B, B delayed by ``phase`` rad (0 = in-phase, pi = antiphase).
     """
+    check_cone_model(model)
     names = model.actuator.membrane_names
     check_choice("drive", drive, DRIVES)
     if drive != "A" and len(names) == 1:
@@ -31,6 +44,9 @@ def drive_pattern(model: Model, drive: str, phase: float) -> tuple[np.ndarray, n
         raise SweepError(f"phase must be finite (allowed range [0, 2 pi)), got {phase!r}")
     if not 0.0 <= phase < 2.0 * math.pi:
         raise SweepError(f"phase = {phase!r} rad is outside the allowed range [0, 2 pi)")
+    if drive != "both" and phase != 0.0:
+        raise SweepError(f"phase = {phase!r} rad is only used with drive='both' (B delayed "
+                         f"against A); got drive={drive!r}: drop phase or use drive='both'")
     on = np.array([drive in ("both", n) for n in names], dtype=float)
     phases = np.where(np.array(names) == "B", phase if drive == "both" else 0.0, 0.0)
     return on, phases
