@@ -7,6 +7,8 @@ import sys
 
 import numpy as np
 
+from jaxdea.studies.loadings import check_cone_model
+
 from .args import (
     check_png,
     check_writable,
@@ -17,7 +19,6 @@ from .args import (
     protocol_args,
     write_dataset,
 )
-
 
 #: What the drive cases mean (paper 000): which membranes the square wave drives.
 DRIVE_HELP = ("A: membrane A only (the single cone's one membrane; the double cones' first); "
@@ -31,6 +32,7 @@ def _sweep(args) -> int:
     check_png(args.plot)
     freq = parse_range(args.freq)
     model = jaxdea.load_config(args.config)
+    check_cone_model(model)  # before its name is printed
     control = jaxdea.StepControl(rtol=args.rtol)
     print(f"jaxdea sweep: {model.name}, drive {args.drive}, {freq.size} frequencies "
           f"{freq[0]:g}-{freq[-1]:g} Hz, protocol {args.protocol}, {args.cycles} cycles "
@@ -67,6 +69,7 @@ def _powermap(args) -> int:
     phase = parse_phases(args.phase) if args.phase is not None else None
     check_png(args.plot)
     model = jaxdea.load_config(args.config)
+    check_cone_model(model)  # before its name is printed
     n = mass.size * damping.size * freq.size * (1 if phase is None else phase.size)
     print(f"jaxdea powermap: {model.name}, drive {args.drive}, protocol {args.protocol}: "
           f"{mass.size} M x {damping.size} c x {freq.size} f"
