@@ -11,6 +11,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import xarray as xr  # noqa: E402
 
+from .calibration import CalibrationResult, Data, FrequencyResponse  # noqa: E402
+
 
 def plot_sweep(ds: xr.Dataset, path: str | Path | None = None):
     """Amplitude and P_out against frequency, in the style of paper 000 Fig 6.
@@ -93,10 +95,10 @@ def _mc_mesh(ax, x, y, z, label, fig, *, norm=None, cmap="viridis", contours=Tru
     return mesh
 
 
-def _save(fig, path):
+def _save(fig, path, dpi: int = 130):
     fig.tight_layout()
     if path is not None:
-        fig.savefig(path, dpi=130)
+        fig.savefig(path, dpi=dpi)
         plt.close(fig)
     return fig
 
@@ -231,3 +233,55 @@ def plot_transient(ds: xr.Dataset, path: str | Path | None = None):
     ax[2].set(xlabel="voltage (kV)", ylabel="displacement (mm)")
     fig.suptitle(ds.attrs.get("model", ""))
     return _save(fig, path)
+
+
+# ---- calibration ------------------------------------------------------------------------
+
+
+_PLOT_UNITS = {"amplitude": (1e3, "mm"), "P_out": (1e3, "mW"), "displacement": (1e3, "mm"),
+               "force": (1.0, "N")}
+
+
+def plot_fit(result: CalibrationResult, data: Data, path=None):
+    """Measured (markers) against the fitted model (lines) for every channel, with the
+    residuals underneath; one colour per payload for frequency responses.
+
+    **Arguments:**
+
+    - `result`: what :func:`jaxdea.calibrate` returned.
+    - `data`: the data it was fitted to.
+    - `path`: if given, the figure is saved there (PNG) and closed.
+
+    **Returns:**
+
+    The matplotlib figure.
+    """
+    chans = list(result.prediction)
+    fig, axes = plt.subplots(2, len(chans), figsize=(5.2 * len(chans), 5.6), squeeze=False,
+                             sharex="col", gridspec_kw={"height_ratios": [3, 1]})
+    for j, ch in enumerate(chans):
+        k, unit = _PLOT_UNITS.get(ch, (1.0, ""))
+        y, p = np.asarray(data.channels[ch]), np.asarray(result.prediction[ch]).ravel()
+        ax, axr = axes[0, j], axes[1, j]
+        if isinstance(data, FrequencyResponse):
+            for gi, ((m, c), idx) in enumerate(data.groups().items()):
+                col = f"C{gi}"
+                ax.plot(data.f[idx], k * y[idx], "o", ms=4, color=col,
+                        label=f"data M = {1e3 * m:g} g, c = {c:g} N s/m")
+                ax.plot(data.f[idx], k * p[idx], "-", color=col)
+                axr.plot(data.f[idx], k * (y[idx] - p[idx]), ".", color=col)
+            axr.set_xlabel("frequency (Hz)")
+        else:
+            ax.plot(data.t, k * y, ".", ms=2, color="0.4", label="data")
+            ax.plot(data.t, k * p, "-", color="C3", lw=1, label="model")
+            axr.plot(data.t, k * (y - p), "-", color="C0", lw=0.7)
+            axr.set_xlabel("time (s)")
+        e_rms, e_m = result.metrics[ch]
+        ax.set_title(f"{ch}: e_rms {e_rms:.2f} %, e_m {e_m:.2f} %", fontsize=10)
+        ax.set_ylabel(f"{ch} ({unit})")
+        axr.set_ylabel(f"data - model ({unit})")
+        ax.legend(fontsize=7)
+        for a in (ax, axr):
+            a.grid(alpha=0.3)
+    fig.suptitle(f"calibration ({result.method}): loss {result.loss:.3g}", fontsize=10)
+    return _save(fig, path, dpi=120)

@@ -31,7 +31,6 @@ import numpy as np
 
 from .._checks import DataError
 
-
 #: Accepted units per quantity -> factor to SI.
 _LENGTH = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6}
 UNITS: dict[str, dict[str, float]] = {
@@ -177,7 +176,7 @@ class FrequencyResponse:
         return {k: getattr(self, k) for k in ("amplitude", "P_out") if getattr(self, k) is not None}
 
     @classmethod
-    def from_sweep(cls, ds, channels=("amplitude", "P_out")) -> "FrequencyResponse":
+    def from_sweep(cls, ds, channels=("amplitude", "P_out")) -> FrequencyResponse:
         """From a :func:`jaxdea.sweep` Dataset (payload from its attrs)."""
         kw = {k: np.asarray(ds[k].values, dtype=float) for k in channels}
         f = np.asarray(ds["f"].values, dtype=float)

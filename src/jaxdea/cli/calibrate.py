@@ -29,10 +29,17 @@ def parse_bounds(text: str | None) -> dict[str, tuple[float, float]]:
 
 def _calibrate(args) -> int:
     import jaxdea
-    from jaxdea.calibration import FrequencyResponse, load_data
-    from jaxdea.calibration import (calibrate, frequency_response, get_params, make_params,
-                                    plot_fit, write_fitted_config)
+    from jaxdea.calibration import (
+        FrequencyResponse,
+        calibrate,
+        frequency_response,
+        get_params,
+        load_data,
+        make_params,
+        write_fitted_config,
+    )
     from jaxdea.models import Model
+    from jaxdea.plotting import plot_fit
 
     out = Path(args.out)
     if out.suffix != ".toml":
