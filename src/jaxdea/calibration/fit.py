@@ -74,11 +74,10 @@ from .._checks import CalibrationError, DataError
 from .data import Data, FrequencyResponse, TimeSeries
 from .objective import LOSSES, Objective
 from .optimisers import METHODS, OPTIMISERS, AbstractOptimiser, optimiser_for
-from .params import make_params, parameter_names, with_theta
+from .params import make_params, with_theta
 from .predictors import default_predict
 
-# parameter_names: re-exported for ``jaxdea/__init__.py``
-__all__ = ["CalibrationResult", "calibrate", "error_metrics", "parameter_names"]
+__all__ = ["CalibrationResult", "calibrate", "error_metrics"]
 
 
 def error_metrics(measured, predicted) -> tuple[float, float]:
