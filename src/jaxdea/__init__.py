@@ -46,8 +46,10 @@ from .config import load_config, model_from_dict  # noqa: E402
 
 # engine
 from .engine.batch import EARLY_EXIT  # noqa: E402
-from .engine.lanes import STATUS, CycleMetrics, StepControl, run_protocol  # noqa: E402
+from .engine.lanes import run_protocol  # noqa: E402
+from .engine.metrics import STATUS, CycleMetrics  # noqa: E402
 from .engine.sharding import use_cpu_cores  # noqa: E402
+from .engine.step_control import StepControl  # noqa: E402
 
 # studies
 from .studies.loadings import make_loadings  # noqa: E402

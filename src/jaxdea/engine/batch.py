@@ -16,8 +16,10 @@ import numpy as np
 
 from .._checks import ConfigError, SweepError, check_choice, check_early_exit, check_protocol
 from ..models.cone import Loading, Model
-from .lanes import CycleMetrics, StepControl, run_protocol
+from .lanes import run_protocol
+from .metrics import CycleMetrics
 from .sharding import cell_sharded
+from .step_control import StepControl
 
 #: Protocols: the papers' N cycles from rest per cell; frequency continuation (each f starts
 #: from the previous f's final state); periodic steady state (settle, then Newton shooting).

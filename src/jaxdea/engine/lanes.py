@@ -12,9 +12,10 @@ long cell would pay its full width for every step of it.
 
 Time stepping: adaptive steps of :class:`jaxdea.solver.LawsonRK4` (RC charging exact, RK4
 with an embedded order-3 error estimate for the rest, standard I-controller on the scaled
-RMS error). Steps never cross a square-wave edge or a cycle boundary: each lane clips its step
-to the next node of its cell's cycle (all edges, any relative phase, and the period end),
-so no edge is found by rejection. Energies are ODE states; the window average is the
+RMS error: :class:`~jaxdea.engine.step_control.IController`). Steps never cross a
+square-wave edge or a cycle boundary: each lane clips its step to the next node of its
+cell's cycle (all edges, any relative phase, and the period end), so no edge is found by
+rejection. Energies are ODE states; the window average is the
 difference of their values at the window ends, so nothing is stored per step. The payload
 amplitude over the window is the extremum of the cubic Hermite interpolant of every
 accepted step (position and velocity at both ends).
@@ -34,15 +35,19 @@ Beyond "N cycles from rest" the same engine runs the other protocols' building b
   last k as usual).
 
 Every cell also reports its periodicity residual: the scaled max-norm of the change of the
-dynamical state over the last cycle (:func:`periodicity_residual`).
+dynamical state over the last cycle (:func:`~jaxdea.engine.metrics.periodicity_residual`).
 
-Status codes per cell: :data:`STATUS`.
+Status codes per cell: :data:`~jaxdea.engine.metrics.STATUS`; the per-cell metrics and
+their pieces are in :mod:`jaxdea.engine.metrics`, the step-size control in
+:mod:`jaxdea.engine.step_control`. The engine reaches the model only through its contract
+(vector field, linearisation, :meth:`~jaxdea.models.cone.ConeActuator.payload_motion`,
+:meth:`~jaxdea.models.cone.ConeActuator.lockup_margin`,
+:meth:`~jaxdea.models.cone.ConeActuator.returned_energy`).
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -50,70 +55,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._checks import SweepError, check_int, check_unit_interval
-from ..electrical import charge_rate
 from ..models.cone import ConeActuator, ConeState, Loading
 from ..solver import LawsonRK4, SemilinearTerm
-
-#: Meaning of the ``status`` values a cell can get (0 = ok).
-STATUS = {
-    0: "ok",
-    1: "Gent lock-up: a stretch reached the limiting-chain limit",
-    2: "non-finite state (pull-in / electromechanical instability or overflow)",
-    3: "step budget exhausted before the last cycle",
-    4: "not converged: periodic steady state not reached (residual above tolerance)",
-}
-
-
-class StepControl(NamedTuple):
-    """Adaptive-step policy.
-
-    ``rtol``: relative tolerance on the mechanical, dashpot and charge states (scaled RMS
-    norm); ``dt_max``: largest step, s (explicit-RK4 stability of the mechanics needs < ~3 ms);
-    ``max_steps``: per-cell step budget (status 3 when exhausted).
-    """
-
-    rtol: float = 1e-6
-    dt_max: float = 1e-3
-    max_steps: int = 5_000_000
-
-
-
-def check_control(control) -> None:
-    """A :class:`StepControl` with ``0 < rtol < 1``, ``dt_max > 0`` and an integer
-    ``max_steps >= 1``; else :class:`~jaxdea.SweepError` naming the field."""
-    if not isinstance(control, StepControl):
-        raise SweepError("control must be a jaxdea.StepControl")
-    check_unit_interval("rtol", control.rtol)
-    dt_max = control.dt_max
-    if isinstance(dt_max, bool) or not isinstance(dt_max, (int, float, np.floating)) \
-            or not (math.isfinite(dt_max) and dt_max > 0):
-        raise SweepError(f"dt_max = {dt_max!r} must be > 0 (allowed range (0, inf))")
-    check_int("max_steps", control.max_steps, 1)
-
-#: Error weights of the states: the tolerance on a state is ``rtol * w * (s + |y|)`` with
-#: ``(s, w)`` below (SI). Charge gets a 10x tighter weight because P_in needs the current
-#: ``i = (Phi - Q/C) / 2R_s``, which amplifies charge errors by ``1/(2 R_s C)`` ~ 2e4 /s.
-#: (Measured on the 996-f DCDEA-LS sweep against LSODA rtol 1e-9 at 7 frequencies: weight
-#: 1e-2 -> max error 5e-5 with 1.26x the steps of 1e-1 -> 4e-5; weight 1 -> 2e-4 on P_in.)
-_SCALES = dict(q=(1e-3, 1.0), v=(0.1, 1.0), charge=(1e-6, 1e-1), xi_m=(1.0, 1.0),
-               xi_el=(1.0, 1.0))
-
-
-class CycleMetrics(eqx.Module):
-    """Per-cell results of the protocol (SI units), each with the batch's shape."""
-
-    P_out: Array  #: mean payload power over the window, W (eq 19)
-    P_in: Array  #: mean electrical input power, no energy recovery, W (eq 20)
-    P_in_signed: Array  #: mean of Phi_in i (charge returned to the source counts), W
-    efficiency: Array  #: P_out / P_in (eq 21)
-    amplitude: Array  #: half peak-to-peak payload displacement over the window, m
-    v_rms: Array  #: RMS payload velocity over the window, m/s
-    status: Array  #: 0 = ok, see STATUS
-    steps: Array  #: solver steps taken (accepted + rejected)
-    residual: Array  #: periodicity residual over the last cycle (:func:`periodicity_residual`)
-    cycles_run: Array  #: drive cycles integrated for the cell
-    final_state: ConeState  #: state at the end of the last cycle
+from .metrics import (
+    CycleMetrics,
+    all_finite,
+    hermite_extrema,
+    periodicity_residual,
+    settled,
+    window_metrics,
+)
+from .step_control import IController, StepControl
 
 
 def cycle_nodes(loading: Loading) -> Array:
@@ -121,80 +73,6 @@ def cycle_nodes(loading: Loading) -> Array:
     e = loading.drive.edge_fractions()
     e = jnp.where(e < 1e-12, 1.0, e)
     return jnp.sort(jnp.concatenate([e, jnp.ones(1)]))
-
-
-def _hermite_coefficients(x0, v0, x1, v1, h):
-    """``(a, b)`` of the cubic ``x0 + v0 s + a s^2 + b s^3`` matching x, x' at 0 and h."""
-    a = (3.0 * (x1 - x0) / h - 2.0 * v0 - v1) / h
-    b = (v0 + v1 - 2.0 * (x1 - x0) / h) / (h * h)
-    return a, b
-
-
-def _hermite(x0, v0, x1, v1, h):
-    """Hermite coefficients ``(a, b)`` and the (clipped, sorted) roots in [0, h] of the cubic's
-    derivative."""
-    a, b = _hermite_coefficients(x0, v0, x1, v1, h)
-    qa, qb, qc = 3.0 * b, 2.0 * a, v0  # x'(s) = qc + qb s + qa s^2
-    sq = jnp.sqrt(jnp.maximum(qb * qb - 4.0 * qa * qc, 0.0))
-    quad = jnp.abs(qa) * h > 1e-12 * (jnp.abs(qb) + jnp.abs(qc) / h + 1e-300)
-    safe_qa = jnp.where(quad, qa, 1.0)
-    lin_ok = jnp.abs(qb) > 0
-    lin_root = jnp.where(lin_ok, -qc / jnp.where(lin_ok, qb, 1.0), 0.0)
-    r1 = jnp.where(quad, (-qb - sq) / (2.0 * safe_qa), lin_root)
-    r2 = jnp.where(quad, (-qb + sq) / (2.0 * safe_qa), lin_root)
-    r1, r2 = jnp.clip(r1, 0.0, h), jnp.clip(r2, 0.0, h)
-    return a, b, jnp.stack([jnp.minimum(r1, r2), jnp.maximum(r1, r2)])
-
-
-def _cubic(x0, v0, a, b, s):
-    return x0 + s * (v0 + s * (a + s * b))
-
-
-def hermite_extrema(x0, v0, x1, v1, h):
-    """Min and max over [0, h] of the cubic Hermite interpolant of (x, x') at both ends."""
-    a, b, roots = _hermite(x0, v0, x1, v1, h)
-    cand = jnp.concatenate([_cubic(x0, v0, a, b, roots), jnp.stack([x0, x1])])
-    return jnp.min(cand, axis=0), jnp.max(cand, axis=0)
-
-
-# numpy constants: importing jaxdea must not start a JAX backend (see jaxdea.use_cpu_cores)
-_GL_X, _GL_W = np.polynomial.legendre.leggauss(8)
-
-
-def returned_charge(q0, i0, q1, i1, h, kappa, q_inf):
-    """Integral over one step of ``min(i, 0)``: charge pushed back into the source.
-
-    Within a step the charge relaxes exactly like ``q_inf + (q0 - q_inf) exp(-kappa s)``
-    (frozen RC part) plus a smooth remainder; the remainder is the cubic Hermite interpolant
-    that matches ``q`` and ``i = q'`` at both ends. ``min(i, 0)`` of the sum is integrated by
-    8-point Gauss-Legendre. Splitting off the exponential keeps this exact for the ~49 us
-    charging transient even when a step spans several RC time constants.
-    """
-    z0 = q0 - q_inf
-    decay_h = jnp.exp(-kappa * h)
-    dr0 = i0 + kappa * z0
-    a, b = _hermite_coefficients(0.0, dr0, q1 - q_inf - z0 * decay_h, i1 + kappa * z0 * decay_h, h)
-    s = 0.5 * h * (_GL_X + 1.0)  # nodes on [0, h]
-    s = s.reshape(s.shape + (1,) * jnp.ndim(q0))
-    i = -kappa * z0 * jnp.exp(-kappa * s) + dr0 + s * (2.0 * a + 3.0 * b * s)
-    w = (0.5 * h * _GL_W).reshape(s.shape)
-    return jnp.sum(w * jnp.minimum(i, 0.0), axis=0)
-
-
-#: The states that define the dynamics (the rest are energy accumulators).
-DYNAMICAL = ("q", "v", "charge", "xi_m", "xi_el")
-
-
-def periodicity_residual(y1: ConeState, y0: ConeState) -> Array:
-    """Scaled max-norm of ``y1 - y0`` over the dynamical states: ``|dy| / (s + |y|)`` with the
-    absolute scales ``s`` of the step-error norm (1 mm, 0.1 m/s, 1 uC, 1)."""
-    worst = jnp.zeros(())
-    for name in DYNAMICAL:
-        a, b = getattr(y1, name), getattr(y0, name)
-        scale = _SCALES[name][0]
-        r = jnp.abs(a - b) / (scale + jnp.maximum(jnp.abs(a), jnp.abs(b)))
-        worst = jnp.maximum(worst, jnp.max(r))
-    return worst
 
 
 def select_cells(mask: Array, a, b):
@@ -230,60 +108,6 @@ class _Lane(eqx.Module):
     xmax: Array
     lockup: Array
     done: Array
-
-
-def _window_metrics(lane: _Lane, cycles: int, settle, require_settled: bool):
-    w, y = lane.window, lane.y
-    span = (lane.cycle - lane.wcycle) / lane.loading.drive.frequency
-    p_out = (y.payload_work - w.payload_work) / span
-    e_in = y.energy_in - w.energy_in
-    p_in_signed = jnp.sum(e_in) / span
-    p_in = (jnp.sum(e_in) - jnp.sum(lane.back)) / span  # back: the driven membranes only
-    eff = jnp.where(p_in > 0, p_out / jnp.where(p_in > 0, p_in, 1.0), 0.0)
-    finite = _all_finite(y)
-    settled = False if settle is None else _settled(lane.res, lane.rate, settle)
-    unfinished = (lane.cycle < cycles) & ~settled  # stopping early once settled is no failure
-    ok = jnp.where(settled, 0, 4) if settle is not None and require_settled else 0
-    status = jnp.where(
-        ~finite, 2, jnp.where(lane.lockup, 1, jnp.where(unfinished, 3, ok))
-    ).astype(jnp.int32)
-    return dict(
-        P_out=p_out,
-        P_in=p_in,
-        P_in_signed=p_in_signed,
-        efficiency=eff,
-        amplitude=0.5 * (lane.xmax - lane.xmin),
-        v_rms=jnp.sqrt(jnp.maximum(y.v2 - w.v2, 0.0) / span),
-        status=status,
-        steps=lane.steps,
-        residual=lane.res,
-        cycles_run=lane.cycle,
-    )
-
-
-def _settled(res, rate, tol):
-    """Converged when the residual, scaled up by the distance still to go at the observed
-    geometric rate (``res * rate / (1 - rate)``), is below ``tol``."""
-    rate = jnp.clip(rate, 0.0, 0.999)
-    return res * jnp.maximum(1.0, rate / (1.0 - rate)) < tol
-
-
-def _all_finite(y: ConeState) -> Array:
-    """Finite check on the dynamical states (a NaN anywhere reaches these within a step)."""
-    return jnp.isfinite(jnp.sum(y.q) + jnp.sum(y.v) + jnp.sum(y.charge) + jnp.sum(y.xi_m)
-                        + jnp.sum(y.xi_el))
-
-
-def _error_norm(err: ConeState, y0: ConeState, y1: ConeState, rtol) -> Array:
-    """Scaled RMS norm of the local error over the dynamical states (not the accumulators)."""
-    total, count = 0.0, 0
-    for name, (scale, weight) in _SCALES.items():
-        e = getattr(err, name)
-        ref = jnp.maximum(jnp.abs(getattr(y0, name)), jnp.abs(getattr(y1, name)))
-        r = e / (rtol * weight * (scale + ref))
-        total = total + jnp.sum(r * r)
-        count += r.size
-    return jnp.sqrt(total / count)
 
 
 #: Smallest lane pool that gets a smaller pool for the end of its batch (:func:`lane_pools`).
@@ -372,6 +196,7 @@ def run_protocol(
     on = (slice(driven[0], driven[-1] + 1) if driven and driven == tuple(
         range(driven[0], driven[-1] + 1)) else np.asarray(driven, dtype=int))
     solver = LawsonRK4()
+    controller = IController(rtol=control.rtol, dt_max=control.dt_max)
     term = SemilinearTerm(model.vector_field, model.linearisation)
     y0 = model.initial_state()
 
@@ -432,17 +257,9 @@ def run_protocol(
         h = jnp.where(clipped, to_node, lane.h)
         t0 = (lane.cycle + lane.u) * period
         y1, err, *_ = solver.step(term, t0, t0 + h, lane.y, lane.loading, None, False)
-        norm = _error_norm(err, lane.y, y1, control.rtol)
-        # a non-finite y1 fails this too: its states enter the norm (NaN), and an infinite
-        # state gives a NaN vector field, hence a NaN error estimate (no separate finite
-        # check: that was ~9 % of a lane-step)
-        ok = norm <= 1.0
         active = ~lane.done
-        accept = active & ok
-        factor = jnp.clip(0.9 * jnp.where(norm > 0, norm, 1e-10) ** -0.25, 0.2, 4.0)
-        factor = jnp.where(jnp.isfinite(norm), factor, 0.2)
-        h_next = jnp.where(accept & clipped, jnp.maximum(lane.h, h * factor), h * factor)
-        h_next = jnp.where(active, jnp.minimum(h_next, control.dt_max), lane.h)
+        accept, ok, h_next = controller.adapt_step_size(lane.y, y1, err, h, lane.h, clipped,
+                                                        active)
 
         y = jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), y1, lane.y)
         u = jnp.where(accept, jnp.where(clipped, target, lane.u + h / period), lane.u)
@@ -463,27 +280,20 @@ def run_protocol(
             in_window = accept & (lane.cycle >= cycles - average)
         else:
             in_window = accept
-        i = model.payload_dof
-        lo, hi = hermite_extrema(lane.y.q[i], lane.y.v[i], y1.q[i], y1.v[i], h)
+        (x0, v0), (x1, v1) = model.payload_motion(lane.y), model.payload_motion(y1)
+        lo, hi = hermite_extrema(x0, v0, x1, v1, h)
         xmin = jnp.where(in_window, jnp.minimum(lane.xmin, lo), lane.xmin)
         xmax = jnp.where(in_window, jnp.maximum(lane.xmax, hi), lane.xmax)
         if settle is None:
             start = wrap & (cycle == cycles - average)
-            settled = jnp.zeros_like(wrap)
+            converged = jnp.zeros_like(wrap)
         else:  # the window is the cycle just finished; restart it unless the cell is done
             # or the last `average` cycles of the budget have begun
-            settled = wrap & (cycle >= 2) & _settled(res, rate, settle)
-            start = wrap & ~settled & (cycle <= cycles - average)
+            converged = wrap & (cycle >= 2) & settled(res, rate, settle)
+            start = wrap & ~converged & (cycle <= cycles - average)
         # charge pushed back into the source during the step (Phi is constant within a step),
         # for the driven membranes only (an undriven one has Phi = 0: no energy either way)
-        mem = model.membrane
-        phi = lane.loading.drive(t0 + 0.5 * h)[on]
-        q0, q1 = lane.y.charge[on], y1.charge[on]
-        cap0 = mem.capacitance(model.deflections(lane.y.q)[on])
-        i0 = charge_rate(phi, q0, cap0, mem.electrode_resistance)
-        i1 = mem.current(model.deflections(y1.q)[on], q1, phi)
-        kappa0 = 1.0 / (2.0 * mem.electrode_resistance * cap0)
-        back = phi * returned_charge(q0, i0, q1, i1, h, kappa0, cap0 * phi)
+        back = model.returned_energy(t0, h, lane.y, y1, lane.loading, on)
         back = jnp.where(in_window, lane.back + back, lane.back)
         if settle is not None:
             xmin = jnp.where(start, jnp.inf, xmin)
@@ -492,14 +302,14 @@ def run_protocol(
         window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), y, lane.window)
         wcycle = jnp.where(start, cycle, lane.wcycle)
 
-        margin = jnp.min(model.membrane.gent_margin(model.deflections(y.q), y.xi_m, y.xi_el))
+        margin = model.lockup_margin(y)
         lockup = lane.lockup | (active & ~(margin > 0))
         steps = lane.steps + active.astype(jnp.int32)
         blown = active & ~ok & (h < 1e-12 * period)  # step size collapsed: non-finite/unstable
         y = jax.tree_util.tree_map(
             lambda a: jnp.where(blown, jnp.nan, a), y)
         done = (lane.done | (cycle >= cycles) | lockup | blown | (steps >= control.max_steps)
-                | settled)
+                | converged)
         return eqx.tree_at(
             lambda s: (s.y, s.cycle, s.u, s.h, s.steps, s.window, s.wcycle, s.prev, s.res,
                        s.ratio, s.rate, s.back, s.xmin, s.xmax, s.lockup, s.done),
@@ -518,7 +328,7 @@ def run_protocol(
 
     def harvest(out, lane: _Lane, finished: Array):
         """Write the finished lanes' results into the outputs (other lanes write nowhere)."""
-        metrics = jax.vmap(lambda ln: _window_metrics(ln, cycles, settle, require_settled))(
+        metrics = jax.vmap(lambda ln: window_metrics(ln, cycles, settle, require_settled))(
             lane)
         metrics["final_state"] = lane.y
         target = jnp.where(finished, lane.job, n_cells)  # index n_cells is dropped
@@ -567,4 +377,4 @@ def run_protocol(
 
 
 def _all_finite_lanes(y: ConeState) -> Array:
-    return jax.vmap(_all_finite)(y)
+    return jax.vmap(all_finite)(y)

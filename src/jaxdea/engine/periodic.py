@@ -30,10 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
-from .lanes import (DYNAMICAL, CycleMetrics, StepControl, periodicity_residual,
-                       run_protocol, select_cells)
+from .lanes import run_protocol, select_cells
+from .metrics import DYNAMICAL, CycleMetrics, periodicity_residual
 from .sharding import cell_sharded
-
+from .step_control import StepControl
 
 #: The per-cell metrics of :class:`CycleMetrics` (everything but the final state).
 _PER_CELL = tuple(f.name for f in dataclasses.fields(CycleMetrics) if f.name != "final_state")

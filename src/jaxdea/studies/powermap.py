@@ -37,8 +37,9 @@ from .._checks import (ConfigError, SweepError, check_choice, check_early_exit, 
                        check_protocol, check_unit_interval, finite_array)
 from ..engine.batch import (DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_heads, chain_successors,
                             default_lanes, driven_membranes, run_cells, run_from_rest)
-from ..engine.lanes import STATUS, StepControl, check_control
+from ..engine.metrics import STATUS
 from ..engine.sharding import cell_sharded
+from ..engine.step_control import StepControl, check_control
 from ..models.cone import Loading, Model
 from .loadings import DRIVES, Grid, drive_pattern
 from .mapstore import Parts, check_store_path, jaxdea_version, write_store

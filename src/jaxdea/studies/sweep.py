@@ -14,7 +14,8 @@ from .._checks import (SweepError, check_choice, check_early_exit, check_unit_in
                        finite_array)
 from ..engine.batch import (DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors,
                             run_cells)
-from ..engine.lanes import STATUS, CycleMetrics, StepControl, check_control
+from ..engine.metrics import STATUS, CycleMetrics
+from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
 from .loadings import make_loadings
 
