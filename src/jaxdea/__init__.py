@@ -61,8 +61,8 @@ from .studies.transient import (amplitude_frequency, displacement, hysteresis_ar
                                 transient)
 
 # calibration
-from .calibration.data import FrequencyResponse, TimeSeries, load_data  # noqa: E402
-from .calibration.fit import CalibrationResult, calibrate, parameter_names  # noqa: E402
+from .calibration import (CalibrationResult, FrequencyResponse, TimeSeries,  # noqa: E402
+                          calibrate, load_data, parameter_names)
 
 __version__ = "0.1.0"
 
