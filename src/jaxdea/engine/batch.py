@@ -155,13 +155,24 @@ def _run_engine(model, loadings, cycles, average, control, lanes, initial, succe
 def _dealt_run(run, loadings: Loading, n: int, devices: tuple):
     """``run(loadings)`` on the ``n`` independent cells in :func:`schedule` order (lowest
     frequency first, dealt round-robin over ``devices``), its per-cell results put back in
-    cell order."""
+    cell order.
+
+    The results are reordered on the host: indexing arrays sharded over the devices with a
+    replicated index compiles to a gather with an all-reduce across the devices, which XLA
+    aborts the process on when one device's thread is 40 s late. Cells are independent, so
+    nothing here needs a collective. (Traced results, one device only, stay traced.)"""
     take = lambda tree, idx: jax.tree_util.tree_map(lambda a: a[idx], tree)  # noqa: E731
     order = schedule(np.asarray(loadings.drive.frequency), len(devices))
     real = deal_slots(n, len(devices)) < n  # the slots that are not padding
     where = np.empty(n, dtype=np.int64)  # slot of each cell
     where[order[real]] = np.nonzero(real)[0]
-    return take(run(take(loadings, order)), where)
+    res = jax.tree_util.tree_map(_on_host, run(take(loadings, order)))
+    return jax.tree_util.tree_map(jnp.asarray, take(res, where))
+
+
+def _on_host(a):
+    """``a`` as a numpy array (each device's shard copied, no collective), unless traced."""
+    return a if isinstance(a, jax.core.Tracer) else np.asarray(a)
 
 
 def chain_successors(n_f: int, n_rest: int = 1, direction: str = "forward",

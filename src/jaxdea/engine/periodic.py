@@ -32,7 +32,7 @@ import numpy as np
 from ..models.cone import ConeActuator, ConeState, Loading
 from .lanes import run_protocol, select_cells
 from .metrics import DYNAMICAL, CycleMetrics, periodicity_residual
-from .sharding import cell_sharded
+from .sharding import cell_sharded, to_host
 from .step_control import StepControl
 
 #: The per-cell metrics of :class:`CycleMetrics` (everything but the final state).
@@ -116,8 +116,12 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     settle = cell_sharded(_settle, devices) if len(devices) > 1 else _SETTLE
     shoot = cell_sharded(_shoot, devices) if len(devices) > 1 else _SHOOT
     driven = None if driven is None else tuple(int(j) for j in driven)
-    res = settle(actuator, loadings, warmup=int(warmup), tol=float(tol), control=control,
-                 lanes=lanes, driven=driven)
+    # Every stage's results come to the host (to_host) before the Newton bookkeeping below
+    # mixes them with the host masks: on the devices, a sharded array combined with a
+    # replicated one may compile to a collective, which XLA aborts on when one device is
+    # 40 s late. Cells are independent; nothing here needs one.
+    res = to_host(settle(actuator, loadings, warmup=int(warmup), tol=float(tol),
+                         control=control, lanes=lanes, driven=driven))
     out = {k: np.asarray(getattr(res, k)) for k in _PER_CELL}
     final = res.final_state
     y = res.final_state
@@ -125,9 +129,9 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     for _ in range(int(newton)):
         if not pending.any():
             break
-        r, step, size = shoot(actuator, loadings, y, jnp.asarray(pending), control=control,
-                              lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
-                              driven=driven)
+        r, step, size = to_host(shoot(actuator, loadings, y, pending, control=control,
+                                      lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
+                                      driven=driven))
         rs = {k: np.asarray(getattr(r, k)) for k in out}
         for k in out:
             if k in ("steps", "cycles_run"):
@@ -139,11 +143,12 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
         converged = pending & ok & (size < tol)
         failed = pending & ~ok
         out["status"] = np.where(failed, rs["status"], np.where(converged, 0, out["status"]))
-        final = select_cells(jnp.asarray(pending), r.final_state, final)
+        final = to_host(select_cells(pending, r.final_state, final))
         pending = pending & ok & ~converged
-        y = with_dynamical(y, flatten_dynamical(y) + jnp.where(jnp.asarray(pending)[:, None],
-                                                              step, 0.0))
-    return CycleMetrics(final_state=final, **{k: jnp.asarray(v) for k, v in out.items()})
+        y = to_host(with_dynamical(y, flatten_dynamical(y) + np.where(pending[:, None], step,
+                                                                      0.0)))
+    return CycleMetrics(final_state=jax.tree_util.tree_map(jnp.asarray, final),
+                        **{k: jnp.asarray(v) for k, v in out.items()})
 
 
 _SETTLE = eqx.filter_jit(_settle)

@@ -24,7 +24,13 @@ def cell_sharded(fn: Callable, devices: tuple) -> Callable:
     cached per ``fn`` and device set). Cell arguments are pytrees whose leaves all have the
     cell axis first, with a length divisible by ``len(devices)``; ``static`` keyword
     arguments are compile-time constants. Index-valued cell arguments (e.g. successors) must
-    be local to each device's slice."""
+    be local to each device's slice.
+
+    The results come back as numpy arrays on the host (:func:`to_host`), never as arrays
+    sharded over the devices: cells are independent, so no step of a sharded run may need a
+    collective, and any later jnp operation that mixed a sharded array with an unsharded one
+    (indexing with a numpy index, ``jnp.where`` on a mask) would compile to an all-reduce
+    that XLA aborts the process on when one device's thread is 40 s late (a busy core)."""
     key = (fn, tuple(d.id for d in devices))
     if key not in _CACHE:
         mesh = Mesh(np.array(devices), ("cells",))
@@ -41,8 +47,17 @@ def cell_sharded(fn: Callable, devices: tuple) -> Callable:
             return jax.shard_map(body, mesh=mesh, in_specs=(PartitionSpec(),) + (spec,) * len(
                 cells), out_specs=spec, check_vma=False)(dyn, *cells)
 
-        _CACHE[key] = eqx.filter_jit(run)
+        jitted = eqx.filter_jit(run)
+        _CACHE[key] = lambda *args, **kwargs: to_host(jitted(*args, **kwargs))
     return _CACHE[key]
+
+
+def to_host(tree):
+    """The arrays of ``tree`` as numpy arrays on the host (other leaves unchanged).
+
+    Copies each device's shard of a sharded array to the host without a collective
+    (``jax.device_get``), unlike indexing or reducing it on the devices."""
+    return jax.device_get(tree)
 
 
 def without_eigen_pool() -> None:
