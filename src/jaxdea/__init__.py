@@ -48,6 +48,7 @@ from .config import load_config, model_from_dict  # noqa: E402
 from .engine.batch import EARLY_EXIT  # noqa: E402
 from .engine.lanes import run_protocol  # noqa: E402
 from .engine.metrics import STATUS, CycleMetrics  # noqa: E402
+from .engine.protocols import Continuation, Paper, Periodic  # noqa: E402
 from .engine.sharding import use_cpu_cores  # noqa: E402
 from .engine.step_control import StepControl  # noqa: E402
 
@@ -80,7 +81,8 @@ __all__ = [
     # config
     "load_config", "model_from_dict",
     # engine
-    "EARLY_EXIT", "STATUS", "CycleMetrics", "StepControl", "run_protocol", "use_cpu_cores",
+    "EARLY_EXIT", "STATUS", "Continuation", "CycleMetrics", "Paper", "Periodic", "StepControl",
+    "run_protocol", "use_cpu_cores",
     # studies
     "amplitude_frequency", "displacement", "hysteresis_area", "make_loadings", "powermap",
     "rotary_study", "simulate", "sweep", "transient",

@@ -18,13 +18,9 @@ from .._checks import ConfigError, SweepError, check_choice, check_early_exit, c
 from ..models.cone import Loading, Model
 from .lanes import run_protocol
 from .metrics import CycleMetrics
+from .protocols import DIRECTIONS, EARLY_EXIT, PROTOCOLS, Protocol, as_keywords
 from .sharding import cell_sharded
 from .step_control import StepControl
-
-#: Protocols: the papers' N cycles from rest per cell; frequency continuation (each f starts
-#: from the previous f's final state); periodic steady state (settle, then Newton shooting).
-PROTOCOLS = ("paper", "continuation", "periodic")
-DIRECTIONS = ("forward", "backward")
 
 _run = eqx.filter_jit(run_protocol)
 
@@ -33,15 +29,6 @@ def _rest_states(actuator, n: int):
     """The rest state (static equilibrium) repeated for ``n`` cells (compiled once)."""
     rest = actuator.initial_state()
     return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), rest)
-
-
-#: Early exit of the paper and continuation protocols: a cell stops once its trajectory is
-#: periodic to this scaled residual (corrected for the observed contraction per cycle), since
-#: its remaining cycles would repeat the last one; its metrics are then over that last cycle.
-#: At 1e-8 the metrics equal the full N-cycle run's to ~1e-7 relative (tests/test_protocols;
-#: 2e-9 at 1e-10, for 11 % more steps), far below the integration error (~5e-5 against LSODA
-#: at rtol 1e-9). ``None`` runs every cell for all N cycles.
-EARLY_EXIT = 1e-8
 
 
 def run_from_rest(actuator, loadings, successor, *, cycles, average, control, lanes,
@@ -88,7 +75,7 @@ def schedule(freq: np.ndarray, n_dev: int) -> np.ndarray:
 
 def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: int = 5,
               control: StepControl = StepControl(), lanes: int | None = None,
-              protocol: str = "paper", successor=None, tol: float = 1e-6,
+              protocol: str | Protocol = "paper", successor=None, tol: float = 1e-6,
               initial=None, early_exit: float | None = EARLY_EXIT,
               devices: tuple | None = None) -> CycleMetrics:
     """Run a protocol on a flat batch of cells (compiled calls cached per shape).
@@ -102,7 +89,15 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     runs queue their cells lowest frequency first, dealt round-robin over the devices
     (:func:`schedule`); continuation runs and runs from given states use the first device
     only, in cell order (a continuation chain is sequential).
+
+    ``protocol`` may also be a protocol object (:class:`jaxdea.Paper`,
+    :class:`jaxdea.Continuation`, :class:`jaxdea.Periodic`): its settings are then used,
+    and ``cycles``, ``average``, ``tol`` and ``early_exit`` must stay at their defaults
+    (:func:`jaxdea.engine.protocols.as_protocol`). A :class:`jaxdea.Continuation`'s chains
+    are ``successor``, not its ``direction``.
     """
+    protocol, (cycles, average, early_exit, tol) = as_keywords(
+        protocol, cycles=cycles, average=average, early_exit=early_exit, tol=tol)
     check_protocol(cycles, average)
     check_early_exit(early_exit)
     early_exit = None if early_exit is None else float(early_exit)

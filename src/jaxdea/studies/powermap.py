@@ -38,6 +38,7 @@ from .._checks import (ConfigError, SweepError, check_choice, check_early_exit, 
 from ..engine.batch import (DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_heads, chain_successors,
                             default_lanes, driven_membranes, run_cells, run_from_rest)
 from ..engine.metrics import STATUS
+from ..engine.protocols import Protocol, as_keywords
 from ..engine.sharding import cell_sharded
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Loading, Model
@@ -138,7 +139,7 @@ def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
 
 
 def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
-             protocol: str = "paper", cycles: int = 100, average: int = 5,
+             protocol: str | Protocol = "paper", cycles: int = 100, average: int = 5,
              direction: str = "forward", tol: float = 1e-6,
              early_exit: float | None = EARLY_EXIT, control: StepControl = StepControl(),
              chunk_cells: int | None = None,
@@ -171,10 +172,18 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     over f). ``attrs["chunks_computed"]`` and
     ``attrs["chunks_reused"]`` count the work done by this call (not written to the store).
     All arguments are checked before any computation (:class:`SweepError` naming the argument).
+
+    ``protocol`` may also be a protocol object (:class:`jaxdea.Paper`,
+    :class:`jaxdea.Continuation`, :class:`jaxdea.Periodic`): its settings are then used, and
+    ``cycles``, ``average``, ``direction``, ``tol`` and ``early_exit`` must stay at their
+    defaults. The map equals the string form's with the same settings, attrs included.
     """
     # ---- validation (nothing is computed before all of this passes) -------------------
     if not isinstance(model, Model):
         raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
+    protocol, (cycles, average, early_exit, direction, tol) = as_keywords(
+        protocol, cycles=cycles, average=average, early_exit=early_exit, direction=direction,
+        tol=tol)
     check_choice("protocol", protocol, PROTOCOLS)
     check_choice("drive", drive, DRIVES)
     check_choice("direction", direction, DIRECTIONS)

@@ -15,6 +15,7 @@ from .._checks import (SweepError, check_choice, check_early_exit, check_unit_in
 from ..engine.batch import (DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors,
                             run_cells)
 from ..engine.metrics import STATUS, CycleMetrics
+from ..engine.protocols import Protocol, as_keywords
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
 from .loadings import make_loadings
@@ -39,7 +40,7 @@ VARIABLES = {
 def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
           phase: float = 0.0, cycles: int = 100, average: int = 5,
           control: StepControl = StepControl(), lanes: int | None = None,
-          protocol: str = "paper", direction: str = "forward",
+          protocol: str | Protocol = "paper", direction: str = "forward",
           tol: float = 1e-6, early_exit: float | None = EARLY_EXIT) -> xr.Dataset:
     """Frequency response of ``model``.
 
@@ -56,7 +57,16 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
     core). Returns a Dataset with dimension ``f`` and variables P_out, P_in,
     P_in_signed, efficiency, amplitude, v_rms, status, steps, residual, cycles_run (units in
     attrs).
+
+    ``protocol`` may also be a protocol object, e.g. ``Paper(cycles=10, average=2)``
+    (:class:`jaxdea.Paper`, :class:`jaxdea.Continuation`, :class:`jaxdea.Periodic`): its
+    settings are then used, and ``cycles``, ``average``, ``early_exit``, ``direction`` and
+    ``tol`` must stay at their defaults (:class:`SweepError` naming the one that does not).
+    The result equals the string form's with the same settings, attrs included.
     """
+    protocol, (cycles, average, early_exit, direction, tol) = as_keywords(
+        protocol, cycles=cycles, average=average, early_exit=early_exit, direction=direction,
+        tol=tol)
     check_choice("protocol", protocol, PROTOCOLS)
     check_choice("direction", direction, DIRECTIONS)
     check_unit_interval("tol", tol)
