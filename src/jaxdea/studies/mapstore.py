@@ -43,6 +43,78 @@ def check_store_path(store: str | os.PathLike) -> Path:
     return path
 
 
+def is_jaxdea_store(path: Path) -> bool:
+    """Whether ``path`` holds a power map that jaxdea wrote (its attrs name a jaxdea version)."""
+    try:
+        if path.suffix == ".nc":
+            if not path.is_file():
+                return False
+            with xr.open_dataset(path, engine="h5netcdf") as ds:
+                return "jaxdea_version" in ds.attrs
+        if not path.is_dir():
+            return False
+        with xr.open_zarr(path, consolidated=False) as ds:
+            return "jaxdea_version" in ds.attrs
+    except Exception:  # noqa: BLE001 - anything unreadable is not ours
+        return False
+
+
+def check_replaceable(store: Path) -> None:
+    """Refuse (before any compute) to write ``store`` over anything jaxdea did not write: only
+    a missing path or an existing jaxdea power map may be replaced, never a user's file or
+    folder."""
+    if (store.exists() or store.is_symlink()) and not is_jaxdea_store(store):
+        kind = "folder" if store.is_dir() else "file"
+        raise SweepError(f"refusing to write the map to {store}: a {kind} of that name exists "
+                         "and is not a jaxdea power map; choose another output path or move it")
+
+
+class StoreLock:
+    """``<store>.lock``: one run at a time per store. Created atomically with the owner's pid;
+    a lock whose process is gone is taken over; released on exit (also on Ctrl-C)."""
+
+    def __init__(self, store: Path):
+        self.path = store.with_name(store.name + ".lock")
+
+    def __enter__(self) -> StoreLock:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                pid = self._owner()
+                if pid is not None and pid != os.getpid() and _alive(pid):
+                    raise SweepError(f"another jaxdea run (pid {pid}) is writing this map "
+                                     f"({self.path} exists): wait for it to finish, or remove "
+                                     "the lock file if that run is gone") from None
+                self.path.unlink(missing_ok=True)  # stale: its run is gone
+                continue
+            with os.fdopen(fd, "w") as fh:
+                fh.write(str(os.getpid()))
+            return self
+        raise SweepError(f"could not take the lock {self.path}: remove it if no run is going")
+
+    def __exit__(self, *exc) -> None:
+        if self._owner() == os.getpid():
+            self.path.unlink(missing_ok=True)
+
+    def _owner(self) -> int | None:
+        try:
+            return int(self.path.read_text().strip())
+        except (OSError, ValueError):
+            return None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
 def settings_hash(settings: dict[str, Any]) -> str:
     """SHA-256 of the canonical JSON of ``settings`` (floats written exactly by ``repr``)."""
     text = json.dumps(settings, sort_keys=True, separators=(",", ":"))
@@ -57,6 +129,11 @@ def _atomic_write_bytes(path: Path, write) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+def _our_temp(name: str) -> bool:
+    """A temp file that :func:`_atomic_write_bytes` leaves when killed mid-write."""
+    return name.startswith(".") and name.endswith(".tmp")
 
 
 class Parts:
@@ -89,7 +166,8 @@ class Parts:
                 old = json.loads(manifest.read_text())
             except (OSError, ValueError):
                 old = None
-            if old is None and not any(self.dir.glob("chunk_*.npz")):
+            leftovers = [p for p in self.dir.iterdir() if not _our_temp(p.name)]
+            if old is None and not leftovers:
                 shutil.rmtree(self.dir)  # killed before its manifest was written: nothing lost
                 return self.open(resume)
             if old is None or old.get("hash") != self.hash:

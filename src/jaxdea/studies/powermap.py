@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+from contextlib import nullcontext
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -33,18 +34,42 @@ import numpy as np
 import xarray as xr
 from tqdm.auto import tqdm
 
-from .._checks import (ConfigError, SweepError, check_choice, check_early_exit, check_int,
-                       check_protocol, check_unit_interval, finite_array)
-from ..engine.batch import (DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_heads, chain_successors,
-                            default_lanes, driven_membranes, run_cells, run_from_rest)
+from .._checks import (
+    SweepError,
+    check_choice,
+    check_early_exit,
+    check_int,
+    check_protocol,
+    check_unit_interval,
+    finite_array,
+)
+from ..engine.batch import (
+    DIRECTIONS,
+    EARLY_EXIT,
+    PROTOCOLS,
+    chain_heads,
+    chain_successors,
+    default_lanes,
+    driven_membranes,
+    run_cells,
+    run_from_rest,
+)
 from ..engine.metrics import STATUS
 from ..engine.protocols import Protocol, as_keywords
 from ..engine.sharding import cell_sharded
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Loading, Model
-from .loadings import DRIVES, Grid, drive_pattern
-from .mapstore import Parts, check_store_path, jaxdea_version, write_store
+from .loadings import DRIVES, Grid, check_cone_model, drive_pattern
+from .mapstore import (
+    Parts,
+    StoreLock,
+    check_replaceable,
+    check_store_path,
+    jaxdea_version,
+    write_store,
+)
 from .sweep import VARIABLES, to_dataset
+
 #: Default chunk size per device: large enough that the lane pools stay busy while a
 #: low-frequency cell that never settles runs its 100 cycles (~3e5 steps at 1 Hz, against
 #: ~5e3 for the mean cell), small enough for a fine progress bar and cheap resumes. Chunks
@@ -179,8 +204,7 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     defaults. The map equals the string form's with the same settings, attrs included.
     """
     # ---- validation (nothing is computed before all of this passes) -------------------
-    if not isinstance(model, Model):
-        raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
+    check_cone_model(model)
     protocol, (cycles, average, early_exit, direction, tol) = as_keywords(
         protocol, cycles=cycles, average=average, early_exit=early_exit, direction=direction,
         tol=tol)
@@ -209,6 +233,8 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     if chunk_cells is not None:
         check_int("chunk_cells", chunk_cells, 1)
     store = check_store_path(store) if store is not None else None
+    if store is not None:
+        check_replaceable(store)  # never write over a file or folder jaxdea did not write
     if resume and store is None:
         raise SweepError("resume=True needs a store (the path of the interrupted run's output)")
     shape = tuple(a.size for a in axes.values())
@@ -247,51 +273,53 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     if drive == "both" and phase is None:
         attrs["phase"] = 0.0
 
-    parts, done = None, set()
-    if store is not None:
-        settings = dict(attrs, config=_model_settings(model), chunk_cells=chunk,
-                        axes={k: v.tolist() for k, v in axes.items()})
-        parts = Parts(store, settings, n_chunks)
-        done = parts.open(resume)
+    # one run per store (a second is refused with a clear message); released on Ctrl-C
+    with StoreLock(store) if store is not None else nullcontext():
+        parts, done = None, set()
+        if store is not None:
+            settings = dict(attrs, config=_model_settings(model), chunk_cells=chunk,
+                            axes={k: v.tolist() for k, v in axes.items()})
+            parts = Parts(store, settings, n_chunks)
+            done = parts.open(resume)
 
-    # ---- run ----------------------------------------------------------------------------
-    ints = ("status", "steps", "cycles_run")
-    results = {k: np.empty(n_cells, dtype=np.int32 if k in ints else float)
-               for k in VARIABLES}
-    computed = reused = 0
-    bar = tqdm(total=n_chunks - len(done), desc="powermap chunks", unit="chunk",
-               disable=not progress, postfix={"reused": len(done)} if done else None)
-    try:
-        for i in range(n_chunks):
-            lo, hi = i * chunk, min((i + 1) * chunk, n_cells)
-            got = parts.load(i, hi - lo, VARIABLES) if i in done else None
-            if got is not None:
-                reused += 1
-            else:
-                if i in done:  # unreadable part: count it as computed work
-                    bar.total += 1
-                idx = np.minimum(np.arange(lo, lo + chunk), hi - 1)  # pad: repeat last cell
-                out = _run_chunk(model, grid.loadings(idx), devices, protocol=protocol,
-                                 successor=successor, cycles=int(cycles),
-                                 average=int(average), control=control, tol=float(tol),
-                                 early_exit=early_exit)
-                got = {k: v[: hi - lo] for k, v in out.items()}
-                if parts is not None:
-                    parts.save(i, got)
-                computed += 1
-                bar.update(1)
-            for k in VARIABLES:
-                results[k][lo:hi] = got[k]
-    finally:
-        bar.close()
+        # ---- run ----------------------------------------------------------------------------
+        ints = ("status", "steps", "cycles_run")
+        results = {k: np.empty(n_cells, dtype=np.int32 if k in ints else float)
+                   for k in VARIABLES}
+        computed = reused = 0
+        bar = tqdm(total=n_chunks - len(done), desc="powermap chunks", unit="chunk",
+                   disable=not progress, postfix={"reused": len(done)} if done else None)
+        try:
+            for i in range(n_chunks):
+                lo, hi = i * chunk, min((i + 1) * chunk, n_cells)
+                got = parts.load(i, hi - lo, VARIABLES) if i in done else None
+                if got is not None:
+                    reused += 1
+                else:
+                    if i in done:  # unreadable part: count it as computed work
+                        bar.total += 1
+                    idx = np.minimum(np.arange(lo, lo + chunk), hi - 1)  # pad: repeat last cell
+                    out = _run_chunk(model, grid.loadings(idx), devices, protocol=protocol,
+                                     successor=successor, cycles=int(cycles),
+                                     average=int(average), control=control, tol=float(tol),
+                                     early_exit=early_exit)
+                    got = {k: v[: hi - lo] for k, v in out.items()}
+                    if parts is not None:
+                        parts.save(i, got)
+                    computed += 1
+                    bar.update(1)
+                for k in VARIABLES:
+                    results[k][lo:hi] = got[k]
+        finally:
+            bar.close()
 
-    # ---- assemble -----------------------------------------------------------------------
-    ds = to_dataset(SimpleNamespace(**results), axes, attrs)
-    ds.attrs["status_codes"] = "; ".join(f"{k} = {v}" for k, v in STATUS.items())
-    ds = reduce_over_f(ds)
-    if store is not None:
-        write_store(ds, store)
-        parts.remove()
-    ds.attrs["chunks_computed"] = computed
-    ds.attrs["chunks_reused"] = reused
-    return ds
+        # ---- assemble -----------------------------------------------------------------------
+        ds = to_dataset(SimpleNamespace(**results), axes, attrs)
+        ds.attrs["status_codes"] = "; ".join(f"{k} = {v}" for k, v in STATUS.items())
+        ds = reduce_over_f(ds)
+        if store is not None:
+            write_store(ds, store)
+            parts.remove()
+        ds.attrs["chunks_computed"] = computed
+        ds.attrs["chunks_reused"] = reused
+        return ds
