@@ -17,7 +17,7 @@ from .fit import CalibrationResult, calibrate, error_metrics
 from .fitted_toml import config_keys, fitted_config_text, write_fitted_config
 from .objective import Objective
 from .optimisers import DE, DE_PAPER, LBFGS, LM, METHODS, AbstractOptimiser, Adam, optimiser_for
-from .params import Param, get_params, make_params, parameter_names, resolve_names, set_params
+from ..params import Param, get_params, make_params, parameter_names, resolve_names, set_params
 from .predictors import PREDICTORS, default_predict, frequency_response, transient_predictor
 
 __all__ = [

@@ -9,7 +9,7 @@ Parameters
 ----------
 A parameter is named by its path in the model pytree (``"actuator.membrane.dielectric.mu_A"``)
 or by any dot-suffix of that path that is unique (``"dielectric.mu_A"``, ``"tau"`` when only
-one ``tau`` exists); :func:`~jaxdea.calibration.params.parameter_names` lists them. Unfitted
+one ``tau`` exists); :func:`~jaxdea.params.parameter_names` lists them. Unfitted
 parameters are held.
 
 Transforms
@@ -74,7 +74,7 @@ from .._checks import CalibrationError, DataError
 from .data import Data, FrequencyResponse, TimeSeries
 from .objective import LOSSES, Objective
 from .optimisers import METHODS, OPTIMISERS, AbstractOptimiser, optimiser_for
-from .params import make_params, with_theta
+from ..params import make_params, with_theta
 from .predictors import default_predict
 
 __all__ = ["CalibrationResult", "calibrate", "error_metrics"]

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import CalibrationError, DataError
-from .params import Param, with_theta
+from ..params import Param, with_theta
 
 __all__ = ["LOSSES", "Objective"]
 

@@ -5,7 +5,7 @@ A parameter is named by its path in the model pytree (``"actuator.membrane.diele
 (``"dielectric.mu_A"``, ``"tau"`` when only one ``tau`` exists); :func:`parameter_names` lists
 them. A fitted parameter is a :class:`Param`: its leaf, its transform ``theta -> u`` (log or
 linear) and its bounds, with the map ``z -> u`` from the unconstrained space of gradient
-methods into the box (see :mod:`jaxdea.calibration.fit`).
+methods into the box (see :mod:`jaxdea.calibration.fit`; the design study uses the same paths).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import CalibrationError
+from ._checks import CalibrationError
 
 __all__ = ["TRANSFORMS", "Param", "get_params", "make_params", "parameter_names",
            "resolve_names", "set_params", "with_theta"]
