@@ -14,8 +14,8 @@ check it. The projection interpolates the measured steps per cell over f onto th
 
 Periodic protocol: on a 1-200 Hz sweep of four payloads, the wall time of
 ``protocol="periodic"`` against ``protocol="paper"`` (every cell 100 cycles; and, for
-information, with the early exit) on the same cells, and its largest P_out difference from a 400-cycle paper run over the cells where that
-run has converged (periodicity residual < 1e-8).
+information, with the early exit) on the same cells, and its largest P_out difference from a
+400-cycle paper run over the cells where that run has converged (periodicity residual < 1e-8).
 
     python bench/powermap_bench.py [--quick] [--periodic-only]
 
@@ -86,7 +86,8 @@ def main() -> None:
                                                 rtol=1e-8)
         times.append(time.perf_counter() - t0)
         cell = ds.isel(M=i, c=j, f=k)
-        err = max(abs(float(cell.P_out) / ref["P_out"] - 1), abs(float(cell.P_in) / ref["P_in"] - 1))
+        err = max(abs(float(cell.P_out) / ref["P_out"] - 1),
+                  abs(float(cell.P_in) / ref["P_in"] - 1))
         errs.append(err)
         print(f"lsoda: M {mass[i] * 1e3:6.3f} g, c {damping[j]:6.3f} N s/m, f {freq[k]:6.1f} Hz: "
               f"{times[-1]:.2f} s, max rel err P_out/P_in {err:.1e}", flush=True)

@@ -16,10 +16,23 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.calibration import DataError, FrequencyResponse, TimeSeries, load_data, save_data
-from jaxdea.calibration import (CalibrationError, calibrate, error_metrics, frequency_response,
-                                get_params, make_params, parameter_names, resolve_names,
-                                set_params, write_fitted_config)
+from jaxdea.calibration import (
+    CalibrationError,
+    DataError,
+    FrequencyResponse,
+    TimeSeries,
+    calibrate,
+    error_metrics,
+    frequency_response,
+    get_params,
+    load_data,
+    make_params,
+    parameter_names,
+    resolve_names,
+    save_data,
+    set_params,
+    write_fitted_config,
+)
 from jaxdea.cli import main
 
 CONFIG = Path(__file__).parents[1] / "configs" / "scdea_ls.toml"

@@ -38,8 +38,7 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.calibration import TimeSeries
-from jaxdea.calibration import calibrate, get_params, set_params, transient_predictor
+from jaxdea.calibration import TimeSeries, calibrate, get_params, set_params, transient_predictor
 from jaxdea.signals import MultiSine
 
 A = [6000.0, 6500.0, 7000.0, 7500.0, 8000.0]  # paper 002 eq 25 amplitudes (V)

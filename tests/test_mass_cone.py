@@ -12,12 +12,17 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.models.mass_cone import MassCone, prestretch_report
 from jaxdea.config import ConfigError, model_from_dict
+from jaxdea.models.mass_cone import MassCone, prestretch_report
 from jaxdea.signals import MultiSine
 from jaxdea.studies.transient import amplitude_frequency, displacement, solve
-from viscoelastic_reference import (huang_equilibrium_load, huang_reference, kelvin_reference,
-                                    multisine, multisine_kinks)
+from viscoelastic_reference import (
+    huang_equilibrium_load,
+    huang_reference,
+    kelvin_reference,
+    multisine,
+    multisine_kinks,
+)
 
 CONFIGS = Path(__file__).parents[1] / "configs"
 A = [6000.0, 6500.0, 7000.0, 7500.0, 8000.0]  # paper 002 identification drive, eq 25

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.models.planar import PlanarDEA
 from jaxdea.config import ConfigError, model_from_dict
+from jaxdea.models.planar import PlanarDEA
 from jaxdea.signals import voltage_pattern
 from jaxdea.studies.transient import displacement, hysteresis_area, solve
 from viscoelastic_reference import planar_reference, vp1

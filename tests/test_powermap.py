@@ -25,7 +25,8 @@ from jaxdea.cli import main
 from jaxdea.cli.args import parse_points, parse_range
 from jaxdea.studies.mapstore import open_map
 
-pm = importlib.import_module("jaxdea.studies.powermap")  # the module (jaxdea.powermap is the function)
+# the module (jaxdea.powermap is the function)
+pm = importlib.import_module("jaxdea.studies.powermap")
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "scdea_ls.toml")
 DOUBLE = str(Path(__file__).parents[1] / "configs" / "dcdea_ls.toml")

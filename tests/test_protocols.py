@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.engine.periodic import flatten_dynamical, periodic_cells, with_dynamical
 from jaxdea.engine.batch import chain_heads, chain_successors, run_cells
+from jaxdea.engine.periodic import flatten_dynamical, periodic_cells, with_dynamical
 from jaxdea.studies.loadings import make_loadings
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "scdea_ls.toml")

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.models import rotary as R
-from jaxdea.studies import rotary as RS
 from jaxdea.config import ConfigError, model_from_dict
 from jaxdea.materials import ogden_type_stress
+from jaxdea.models import rotary as R
+from jaxdea.studies import rotary as RS
 
 CONFIG = Path(__file__).parents[1] / "configs" / "rotary_dcdea.toml"
 RI = np.linspace(2e-3, 7e-3, 26)  # Fig 12 grid: 0.2 mm steps

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.engine.lanes import lane_pools, run_protocol
 from jaxdea.engine.batch import driven_membranes, schedule
+from jaxdea.engine.lanes import lane_pools, run_protocol
 from jaxdea.studies.loadings import make_loadings
 
 CONFIG = Path(__file__).parents[1] / "configs" / "dcdea_ls.toml"

@@ -12,12 +12,12 @@ The public names are re-exported here; the figure is :func:`jaxdea.plotting.plot
 """
 
 from .._checks import CalibrationError, DataError
+from ..params import Param, get_params, make_params, parameter_names, resolve_names, set_params
 from .data import Data, FrequencyResponse, TimeSeries, data_from_columns, load_data, save_data
 from .fit import CalibrationResult, calibrate, error_metrics
 from .fitted_toml import config_keys, fitted_config_text, write_fitted_config
 from .objective import Objective
 from .optimisers import DE, DE_PAPER, LBFGS, LM, METHODS, AbstractOptimiser, Adam, optimiser_for
-from ..params import Param, get_params, make_params, parameter_names, resolve_names, set_params
 from .predictors import PREDICTORS, default_predict, frequency_response, transient_predictor
 
 __all__ = [

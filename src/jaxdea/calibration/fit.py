@@ -71,10 +71,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import CalibrationError, DataError
+from ..params import make_params, with_theta
 from .data import Data, FrequencyResponse, TimeSeries
 from .objective import LOSSES, Objective
 from .optimisers import METHODS, OPTIMISERS, AbstractOptimiser, optimiser_for
-from ..params import make_params, with_theta
 from .predictors import default_predict
 
 __all__ = ["CalibrationResult", "calibrate", "error_metrics"]

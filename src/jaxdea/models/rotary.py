@@ -222,7 +222,7 @@ class RotaryDCDEA(eqx.Module):
         return (self.r_i > 0) & (self.r_i < self.r_o) & (self.d + self.f > self.h) & (self.z0 > 0)
 
     def with_geometry(self, r_i: ArrayLike | None = None, d: ArrayLike | None = None
-                      ) -> "RotaryDCDEA":
+                      ) -> RotaryDCDEA:
         """Copy with a new inner radius and/or half spacer length (m)."""
         out = self
         if r_i is not None:
@@ -231,11 +231,11 @@ class RotaryDCDEA(eqx.Module):
             out = eqx.tree_at(lambda m: m.d, out, jnp.asarray(d, dtype=jnp.float64))
         return out
 
-    def with_pattern(self, pattern: ArrayLike) -> "RotaryDCDEA":
+    def with_pattern(self, pattern: ArrayLike) -> RotaryDCDEA:
         """Copy with another activation pattern (4 multipliers of the eq-30 voltage, A-D)."""
         return eqx.tree_at(lambda m: m.pattern, self, jnp.asarray(pattern, dtype=jnp.float64))
 
-    def with_field(self, field: str) -> "RotaryDCDEA":
+    def with_field(self, field: str) -> RotaryDCDEA:
         """Copy with the other eq-9 reading ("frozen" or "literal")."""
         if field not in FIELD_MODES:
             raise ConfigError(f"field = {field!r} is not one of {', '.join(FIELD_MODES)}")

@@ -15,9 +15,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ..models.rotary import (ELEMENTS, INVALID, ROTARY_STATUS, RotaryDCDEA, equilibrium, f64,
-                             scales, steady_angle)
-
+from ..models.rotary import (
+    ELEMENTS,
+    INVALID,
+    ROTARY_STATUS,
+    RotaryDCDEA,
+    equilibrium,
+    f64,
+    scales,
+    steady_angle,
+)
 
 # ---- time integration (diffrax) -----------------------------------------------------------
 
