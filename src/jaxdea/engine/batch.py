@@ -196,12 +196,9 @@ def chain_heads(successor) -> int:
 def default_lanes(n_cells: int) -> int:
     """Lane-pool size of a batch of ``n_cells`` cells on one device: 128, or all the cells.
 
-    Measured on a 2-core CPU (one device per core): a step of 128 lanes costs ~43 us, of 32
-    lanes ~15 us, of 8 lanes ~6.5 us, of one lane ~4 us (per-step overhead), so wide pools
-    are ~1.4x cheaper per cell-step than 32 lanes; 256 lanes are slower again (cache). Wide
-    pools pay off only when they stay busy to the end: cells are queued lowest frequency
-    first (:func:`schedule`) and the batch ends in smaller pools
-    (:func:`jaxdea.engine.lanes.lane_pools`). The 8 x 8 x 64 bench map runs 1.5x faster with 128
-    lanes than with 32, the 996-f sweep with its early exit 1.5x (strict: the same).
+    Wide pools are cheaper per cell-step (the per-step overhead is shared) but pay off only
+    when they stay busy to the end: cells are queued lowest frequency first
+    (:func:`schedule`) and the batch ends in smaller pools
+    (:func:`jaxdea.engine.lanes.lane_pools`). Measurements: ``bench/NOTES.md``.
     """
     return int(min(n_cells, 128))

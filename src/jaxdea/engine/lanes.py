@@ -115,12 +115,23 @@ TAIL_FROM = 64
 
 
 def lane_pools(n_lanes: int, strict: bool = False) -> tuple[int, ...]:
-    """The lane pools a batch runs through, widest first: ``n_lanes`` while the queue lasts,
-    then 8 lanes for its last cells. ``strict`` (every cell runs all its cycles): a middle
-    pool of ``sqrt(8 n_lanes)`` lanes in between, because there the lowest frequencies
-    form a long tail of long cells rather than a few outliers (996-f strict sweep, 2 cores:
-    6.2 s with the middle pool, 8.9 s without). Each pool is one more compiled loop (~3 s
-    of compile), so pools under :data:`TAIL_FROM` lanes keep one."""
+    """The lane pools a batch runs through, widest first.
+
+    ``n_lanes`` while the queue lasts, then 8 lanes for its last cells. ``strict`` (every
+    cell runs all its cycles): a middle pool of ``sqrt(8 n_lanes)`` lanes in between, because
+    there the lowest frequencies form a long tail of long cells rather than a few outliers.
+    Each pool is one more compiled loop, so pools under :data:`TAIL_FROM` lanes keep one.
+    The measurements behind these choices are in ``bench/NOTES.md``.
+
+    **Arguments:**
+
+    - `n_lanes`: the widest pool (lanes per device).
+    - `strict`: whether every cell runs all its cycles (no early exit).
+
+    **Returns:**
+
+    The pool widths, decreasing.
+    """
     if n_lanes < TAIL_FROM:
         return (n_lanes,)
     if strict:

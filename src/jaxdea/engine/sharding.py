@@ -75,12 +75,18 @@ def use_cpu_cores(n: int | None = None) -> int:
     core, :func:`cell_sharded` (hence sweeps, power maps and periodic stages) runs a slice of
     the cells on every core. It also turns off XLA's Eigen intra-op thread pool
     (``--xla_cpu_multi_thread_eigen=false``): the lane engine's ops are far too small to
-    split, and the pool's spinning workers took half of a core from a single device's
-    compute thread (measured on 2 cores: a 32-lane step 31 us with the pool, 15 us
-    without; no change with one device per core). Call it before JAX computes anything
+    split, and the pool's spinning workers can take half of a core from a single device's
+    compute thread (measured: ``bench/NOTES.md``). Call it before JAX computes anything
     (the CLI does this at start); afterwards, or when ``XLA_FLAGS`` already sets
-    ``--xla_force_host_platform_device_count``, the device count stays as it is and the
-    CPU device count in effect is returned.
+    ``--xla_force_host_platform_device_count``, the device count stays as it is.
+
+    **Arguments:**
+
+    - `n`: the number of CPU devices (default: ``os.cpu_count()``).
+
+    **Returns:**
+
+    The CPU device count in effect.
     """
     n = int(n or os.cpu_count() or 1)
     without_eigen_pool()
