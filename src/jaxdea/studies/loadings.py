@@ -70,7 +70,21 @@ def cell_loadings(amplitude, frequency, duty, phase, mass, damping) -> Loading:
 
 def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
                   phase: float = 0.0) -> Loading:
-    """Loadings for the broadcast of ``mass``, ``damping``, ``freq`` (flattened, C order)."""
+    """Loadings (drive and payload per cell) of a cone model.
+
+    **Arguments:**
+
+    - `model`: a square-wave cone from :func:`jaxdea.load_config` (its voltage and duty may
+      be traced).
+    - `mass`, `damping`, `freq`: payload mass (kg, >= 0), damping (N s/m, >= 0) and drive
+      frequency (Hz, > 0), broadcast against each other.
+    - `drive`: ``"A"``, ``"B"`` or ``"both"``; `phase`: B's delay with ``"both"``, rad.
+
+    **Returns:**
+
+    A :class:`~jaxdea.Loading` whose leaves have the broadcast's cells (flattened, C order)
+    as their leading axis.
+    """
     mass = finite_array("mass", mass, nonnegative=True)
     damping = finite_array("damping", damping, nonnegative=True)
     freq = finite_array("freq", freq, positive=True)

@@ -13,6 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import xarray as xr
 from jaxtyping import Array, ArrayLike
 
 from ..models.rotary import (
@@ -137,16 +138,23 @@ def _study_kernel(model: RotaryDCDEA, ri: Array, d: Array):
     return jax.vmap(cell)(ri, d)
 
 
-def rotary_study(model: RotaryDCDEA, ri: ArrayLike, d: ArrayLike):
-    """Steady angle over the grid ``ri x d`` (m) in ONE vmapped, jitted call.
+def rotary_study(model: RotaryDCDEA, ri: ArrayLike, d: ArrayLike) -> xr.Dataset:
+    """Steady angle of the rotary double cone over the grid ``ri x d`` in ONE vmapped, jitted
+    call (paper 003 Fig 12). Each cell uses its own eq-30 voltage on the model's activation
+    pattern.
 
-    Each cell uses its own eq-30 voltage on the model's activation pattern. Returns an
-    ``xarray.Dataset`` with dims ``(ri, d)``: ``theta_deg`` (NaN unless ``status == 0``),
+    **Arguments:**
+
+    - `model`: a :class:`~jaxdea.RotaryDCDEA` (e.g. from ``configs/rotary_dcdea.toml``).
+    - `ri`: inner radii r_i, m (1-D).
+    - `d`: half spacer lengths d, m (1-D).
+
+    **Returns:**
+
+    An ``xarray.Dataset`` with dims ``(ri, d)``: ``theta_deg`` (NaN unless ``status == 0``),
     ``status`` (codes in ``attrs['status_codes']``), ``voltage`` (V), ``rest_stretch``,
-    ``min_stiffness_eig``.
+    ``min_stiffness_eig`` (N m).
     """
-    import xarray as xr
-
     ri = np.atleast_1d(np.asarray(ri, dtype=np.float64))
     d = np.atleast_1d(np.asarray(d, dtype=np.float64))
     if ri.ndim != 1 or d.ndim != 1:

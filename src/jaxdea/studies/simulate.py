@@ -41,10 +41,23 @@ def time_grid(frequency: float, cycles: int, points_per_cycle: int,
 
 def simulate(model: Model, *, mass: float, damping: float, freq: float, drive: str = "A",
              phase: float = 0.0, cycles: int = 10, points_per_cycle: int = 400) -> xr.Dataset:
-    """Time history of ``cycles`` drive periods from rest (fixed steps, edges on the grid).
+    """Time history of one cone drive case from rest (fixed Lawson RK4 steps, edges on the
+    grid), for plots and checks; power studies use :func:`jaxdea.sweep`.
 
-    Returns a Dataset over ``t`` (s) with payload position/velocity, each membrane's
-    deflection, force, DEA voltage, source voltage, current and charge.
+    **Arguments:**
+
+    - `model`: a square-wave cone from :func:`jaxdea.load_config`.
+    - `mass`, `damping`: the payload, kg and N s/m.
+    - `freq`: drive frequency, Hz.
+    - `drive`: ``"A"``, ``"B"`` or ``"both"``; `phase`: B's delay with ``"both"``, rad.
+    - `cycles`: drive periods to integrate; `points_per_cycle`: samples (= steps) per period
+      (>= 8; every drive edge is added to the grid).
+
+    **Returns:**
+
+    An ``xarray.Dataset`` over ``t`` (s) with the payload position and velocity and each
+    membrane's deflection, force, DEA voltage, source voltage, current and charge (SI units
+    in the attrs).
     """
     check_protocol(cycles, 1)
     if points_per_cycle < 8:

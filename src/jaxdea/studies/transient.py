@@ -135,12 +135,22 @@ def solve(model, signal, ts: ArrayLike, *, rtol: float = 1e-8, atol: float = 1e-
           jump_ts: ArrayLike | None = None) -> tuple[Any, dict, Array]:
     """Integrate ``model`` under ``signal`` from its prestretched state; save at ``ts`` (s).
 
-    Returns ``(ys, observables, ok)``: the states and the observables at ``ts`` and a success
-    flag (False: step budget exhausted or the implicit solve failed, e.g. Gent lock-up; the
-    outputs are then not trustworthy). ``ts`` must be concrete (a numpy array) unless
-    ``jump_ts`` is given; model parameters may be traced (jit/grad/vmap over the model).
-    ``fixed_steps``: use that many uniform steps (plus kinks and ``ts``) instead of the
-    adaptive controller (for gradients, see the module docstring).
+    **Arguments:**
+
+    - `model`: a viscoelastic model (:class:`~jaxdea.MassCone`, :class:`~jaxdea.PlanarDEA`);
+      its parameters may be traced (jit/grad/vmap over the model).
+    - `signal`: the drive voltage (:mod:`jaxdea.signals`).
+    - `ts`: output times, s; concrete (a numpy array) unless ``jump_ts`` is given.
+    - `rtol`, `atol`: tolerances of the adaptive controller; `max_steps`: step budget.
+    - `fixed_steps`: use that many uniform steps (plus kinks and ``ts``) instead of the
+      adaptive controller (for exact gradients, see the module docstring).
+    - `jump_ts`: the signal's kinks, when ``ts`` is traced.
+
+    **Returns:**
+
+    ``(ys, observables, ok)``: the states and the observables at ``ts`` and a success flag
+    (False: step budget exhausted or the implicit solve failed, e.g. Gent lock-up; the
+    outputs are then not trustworthy).
     """
     # the step grid / kinks come from the (concrete) drive and ts, also inside a jit trace
     with jax.ensure_compile_time_eval():
@@ -168,9 +178,19 @@ def displacement(model, signal, ts: ArrayLike, **kwargs) -> Array:
 
 
 def transient(model, signal, ts: ArrayLike, *, name: str = "", **kwargs) -> xr.Dataset:
-    """:func:`solve` as an ``xarray.Dataset`` over ``t`` (s): ``voltage`` (V),
-    ``displacement`` (m, from the prestretched state) and the stretches; attrs say whether
-    the solve succeeded (``ok``)."""
+    """:func:`solve` as a labelled Dataset.
+
+    **Arguments:**
+
+    - `model`, `signal`, `ts`: as in :func:`solve`.
+    - `name`: stored as ``attrs["model"]``.
+    - `kwargs`: passed to :func:`solve`.
+
+    **Returns:**
+
+    An ``xarray.Dataset`` over ``t`` (s): ``voltage`` (V), ``displacement`` (m, from the
+    prestretched state) and the stretches; ``attrs["ok"]`` says whether the solve succeeded.
+    """
     _, obs, ok = solve(model, signal, ts, **kwargs)
     units = {"voltage": "V", "displacement": "m"}
     data = {k: xr.Variable(("t",), np.asarray(v), {"units": units.get(k, "1")})
