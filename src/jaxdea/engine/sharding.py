@@ -1,13 +1,14 @@
 """Run a per-cell function with its cells split evenly over several JAX devices.
 
-Every protocol stage (:func:`jaxdea.protocol.run_protocol`, the shooting step of
-:mod:`jaxdea.steady`) maps independent cells to per-cell results, so it shards trivially:
+Every protocol stage (:func:`jaxdea.engine.lanes.run_protocol`, the shooting step of
+:mod:`jaxdea.engine.periodic`) maps independent cells to per-cell results, so it shards trivially:
 ``jax.shard_map`` over a 1-D mesh, the model replicated, every other argument and every output
 split along its leading (cell) axis. Each device then runs its own lane pool on its slice.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable
 
@@ -15,8 +16,6 @@ import equinox as eqx
 import jax
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
-
-_CACHE: dict = {}
 
 
 def cell_sharded(fn: Callable, devices: tuple) -> Callable:
@@ -31,25 +30,28 @@ def cell_sharded(fn: Callable, devices: tuple) -> Callable:
     collective, and any later jnp operation that mixed a sharded array with an unsharded one
     (indexing with a numpy index, ``jnp.where`` on a mask) would compile to an all-reduce
     that XLA aborts the process on when one device's thread is 40 s late (a busy core)."""
-    key = (fn, tuple(d.id for d in devices))
-    if key not in _CACHE:
-        mesh = Mesh(np.array(devices), ("cells",))
+    return _sharded(fn, tuple(devices))
 
-        def run(model, *cells, **static):
-            dyn, const = eqx.partition(model, eqx.is_array)
 
-            def body(dyn, *cells):
-                return fn(eqx.combine(dyn, const), *cells, **static)
+@functools.cache
+def _sharded(fn: Callable, devices: tuple) -> Callable:
+    """The jitted ``shard_map`` of ``fn`` over ``devices``, built once per pair."""
+    mesh = Mesh(np.array(devices), ("cells",))
 
-            # check_vma off: the lane engine's while_loop carry starts from replicated values
-            # (the model's rest state) that become device-varying, which the vma check rejects
-            spec = PartitionSpec("cells")
-            return jax.shard_map(body, mesh=mesh, in_specs=(PartitionSpec(),) + (spec,) * len(
-                cells), out_specs=spec, check_vma=False)(dyn, *cells)
+    def run(model, *cells, **static):
+        dyn, const = eqx.partition(model, eqx.is_array)
 
-        jitted = eqx.filter_jit(run)
-        _CACHE[key] = lambda *args, **kwargs: to_host(jitted(*args, **kwargs))
-    return _CACHE[key]
+        def body(dyn, *cells):
+            return fn(eqx.combine(dyn, const), *cells, **static)
+
+        # check_vma off: the lane engine's while_loop carry starts from replicated values
+        # (the model's rest state) that become device-varying, which the vma check rejects
+        spec = PartitionSpec("cells")
+        return jax.shard_map(body, mesh=mesh, in_specs=(PartitionSpec(),) + (spec,) * len(
+            cells), out_specs=spec, check_vma=False)(dyn, *cells)
+
+    jitted = eqx.filter_jit(run)
+    return lambda *args, **kwargs: to_host(jitted(*args, **kwargs))
 
 
 def to_host(tree):
