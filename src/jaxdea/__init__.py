@@ -25,8 +25,8 @@ import jax as _jax
 _jax.config.update("jax_enable_x64", True)
 
 # errors (every user error is one of these, all ValueError subclasses)
-from ._checks import (CalibrationError, ConfigError, DataError, JaxdeaError,  # noqa: E402
-                      SweepError)
+from ._checks import (CalibrationError, ConfigError, DataError, FieldWarning,  # noqa: E402
+                      JaxdeaError, SweepError)
 
 # leaves
 from .materials import GentKelvinChain, GentMaxwell, GentSpringDashpot  # noqa: E402
@@ -69,7 +69,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     # errors
-    "CalibrationError", "ConfigError", "DataError", "JaxdeaError", "SweepError",
+    "CalibrationError", "ConfigError", "DataError", "FieldWarning", "JaxdeaError", "SweepError",
     # leaves
     "ConeMembrane", "GentKelvinChain", "GentMaxwell", "GentSpringDashpot", "LawsonRK4",
     "LinearViscous", "MultiSine", "SemilinearTerm", "Sine", "SquareWave", "TriangularPattern",

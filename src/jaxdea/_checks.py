@@ -26,6 +26,11 @@ class SweepError(JaxdeaError):
     """Bad study arguments (sweep, power map, simulation; checked before any computation)."""
 
 
+class FieldWarning(UserWarning):
+    """A study drives the membrane above its dielectric breakdown field (nominal field =
+    voltage / thickness at rest): the model computes on, a real film would break down."""
+
+
 class DataError(JaxdeaError):
     """A measured-data file or array is malformed, incomplete or has bad units."""
 

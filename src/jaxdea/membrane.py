@@ -20,6 +20,13 @@ from .electrical import capacitance, charge_rate
 from .geometry import cone_kinematics
 from .materials import EPS0, GentMaxwell, electrostatic_stress, gent_denominator
 
+#: Default dielectric breakdown field of the membrane, V/m: 100 V/um, the order that WACKER's
+#: data sheet for ELASTOSIL Film 2030 (the papers' film) gives and that breakdown tests of
+#: the film report, prestretch raising it and carbon electrodes lowering it by up to 20 %
+#: (docs/models.md, section 5). Paper 000 drives at 80 MV/m, below it. Only checked, never
+#: used in the dynamics (config key ``drive.breakdown_field``).
+BREAKDOWN_FIELD = 100e6
+
 
 class MembraneResponse(NamedTuple):
     """What a membrane exerts and how its internal state moves, at one instant."""

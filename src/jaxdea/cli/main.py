@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 
 from . import calibrate, maps, rotary, simulate
 
@@ -35,13 +36,29 @@ def main(argv: list[str] | None = None) -> int:
         use_cpu_cores()  # one JAX device per core: batched runs shard over all of them
 
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line(warnings.showwarning)
+            return args.func(args)
     except KeyboardInterrupt:
         print("\njaxdea: interrupted", file=sys.stderr)
         return 130
     except (JaxdeaError, ValueError, NotImplementedError, OSError) as exc:
         print(f"jaxdea: error: {exc}", file=sys.stderr)
         return 2
+
+
+def _one_line(show):
+    """``warnings.showwarning`` that prints jaxdea's :class:`~jaxdea.FieldWarning` as one
+    line on stderr (other warnings as ``show`` does)."""
+    from jaxdea._checks import FieldWarning
+
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, FieldWarning):
+            print(f"jaxdea: warning: {message}", file=sys.stderr, flush=True)
+        else:
+            show(message, category, filename, lineno, file, line)
+
+    return showwarning
 
 
 if __name__ == "__main__":

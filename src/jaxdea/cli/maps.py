@@ -42,14 +42,15 @@ def _sweep(args) -> int:
                       control=control, protocol=args.protocol, direction=args.direction,
                       tol=args.tol, early_exit=args.early_exit)
     write_dataset(ds, out)
-    ok = (ds["status"].values == 0) & np.isfinite(ds["P_out"].values)
+    ok = (ds["status"].values == 0) & ds["steady"].values & np.isfinite(ds["P_out"].values)
     bad = int((ds["status"] != 0).sum())
-    if ok.any():  # the maximum among the cells that finished (failed cells may hold nan/inf)
+    if ok.any():  # the maximum among the steady cells that finished (failed: nan/inf)
         i = int(np.argmax(np.where(ok, ds["P_out"].values, -np.inf)))
         print(f"wrote {out}: P_out max {1e3 * float(ds['P_out'][i]):.3f} mW at "
-              f"{float(ds['f'][i]):g} Hz; {bad} failed cell(s)")
+              f"{float(ds['f'][i]):g} Hz (steady cells); {bad} failed cell(s)")
     else:
-        print(f"wrote {out}: no cell finished with status 0; {bad} failed cell(s)")
+        print(f"wrote {out}: no steady cell finished with status 0; {bad} failed cell(s)")
+    _print_not_steady(ds)
     if args.plot:
         plot_sweep(ds, args.plot)
         print(f"wrote {args.plot}")
@@ -99,6 +100,18 @@ def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out):
                            progress=not args.no_progress)
 
 
+def _print_not_steady(ds) -> None:
+    """The count of finished (status 0) cells whose last cycles are not periodic."""
+    from jaxdea.engine.metrics import STEADY_RESIDUAL
+
+    if "steady" not in ds:  # an older store
+        return
+    n = int(((ds["status"] == 0) & ~ds["steady"]).sum())
+    if n:
+        print(f"{n} cell(s) not steady (periodicity residual above {STEADY_RESIDUAL:g}): their "
+              "averages are not a steady-state power")
+
+
 def _summarise_map(ds, out, plot) -> int:
     from jaxdea.plotting import plot_pmax
 
@@ -108,17 +121,19 @@ def _summarise_map(ds, out, plot) -> int:
         flat = int(np.argmax(np.nan_to_num(pmax.values, nan=-np.inf)))
         best = dict(zip(pmax.dims, np.unravel_index(flat, pmax.shape)))
         at = {k: float(ds[k][v]) for k, v in best.items()}
-        print(f"wrote {out}: P_max {1e3 * float(pmax.isel(best)):.3f} mW at "
+        print(f"wrote {out}: P_max (steady cells) {1e3 * float(pmax.isel(best)):.3f} mW at "
               f"M = {1e3 * at['M']:g} g, c = {at['c']:g} N s/m"
               + (f", phase = {at['phase']:g} rad" if "phase" in at else "")
               + f", f = {float(ds['f_at_P_max'].isel(best)):g} Hz; {bad} failed cell(s)")
     else:
-        print(f"wrote {out}: no cell finished with status 0; {bad} failed cell(s)")
+        print(f"wrote {out}: no steady cell finished with status 0; {bad} failed cell(s)")
+    _print_not_steady(ds)
     if plot and bool(pmax.notnull().any()):
         plot_pmax(ds, plot)
         print(f"wrote {plot}")
     elif plot:
-        print(f"no plot written to {plot}: no cell finished with status 0", file=sys.stderr)
+        print(f"no plot written to {plot}: no steady cell finished with status 0",
+              file=sys.stderr)
         return 1
     return 0
 

@@ -8,7 +8,7 @@ Layout (SI; see ``configs/scdea_ls.toml``)::
     [membrane.dielectric]  mu_A, J_A, mu_B, J_B, tau      (GentMaxwell)
     [membrane.electrode]   mu_A, J_A, mu_B, J_B, tau
     [actuator]  disk_mass and the configuration's own fields (ACTUATOR_FIELDS)
-    [drive]     voltage, duty
+    [drive]     voltage, duty, and optionally breakdown_field (V/m, default 100e6)
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from .._checks import ConfigError
 from ..materials import GentMaxwell, gent_denominator
-from ..membrane import ConeMembrane
+from ..membrane import BREAKDOWN_FIELD, ConeMembrane
 from ..models import DCDEA_LS, DCDEA_RR, SCDEA_LS, ConeActuator, Model
 from .fields import Field, check_top, section, subtables
 
@@ -59,6 +59,8 @@ ACTUATOR_FIELDS = {
 DRIVE_FIELDS = {
     "voltage": Field(0.0, math.inf, unit="V"),
     "duty": Field(0.0, 1.0, lo_open=True, hi_open=True, unit="(-)"),
+    # optional (default BREAKDOWN_FIELD): the film's dielectric breakdown field, checked only
+    "breakdown_field": Field(0.0, math.inf, lo_open=True, unit="V/m"),
 }
 ACTUATOR_CLASSES: dict[str, type[ConeActuator]] = {
     "scdea_ls": SCDEA_LS,
@@ -87,9 +89,13 @@ def cone_from_config(cfg: dict[str, Any]) -> Model:
     membrane = ConeMembrane(**geo, dielectric=dielectric, electrode=electrode)
     act = section(cfg["actuator"], "actuator", ACTUATOR_FIELDS[kind])
     actuator = ACTUATOR_CLASSES[kind](membrane=membrane, **act)
-    drive = section(cfg["drive"], "drive", DRIVE_FIELDS)
+    table = cfg["drive"]
+    if isinstance(table, dict):  # breakdown_field is optional
+        table = {"breakdown_field": BREAKDOWN_FIELD, **table}
+    drive = section(table, "drive", DRIVE_FIELDS)
     _check_rest_state(actuator)
-    return Model(actuator=actuator, voltage=drive["voltage"], duty=drive["duty"], name=kind)
+    return Model(actuator=actuator, voltage=drive["voltage"], duty=drive["duty"], name=kind,
+                 breakdown_field=float(drive["breakdown_field"]))
 
 
 def _check_rest_state(actuator: ConeActuator) -> None:

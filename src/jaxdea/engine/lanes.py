@@ -112,6 +112,12 @@ class _Lane(eqx.Module):
 
 #: Smallest lane pool that gets a smaller pool for the end of its batch (:func:`lane_pools`).
 TAIL_FROM = 64
+#: Narrowest lane pool. XLA compiles a vmap of width 1 to scalar code that rounds differently
+#: from the vector code of every wider pool, so a cell run alone (a one-cell chunk per
+#: device, a one-frequency sweep) got other last bits than in company, and a chaotic cell a
+#: different answer (measured: widths 2-128 bit-identical, width 1 not). A 1-cell batch
+#: runs with one idle lane instead.
+MIN_LANES = 2
 
 
 def lane_pools(n_lanes: int, strict: bool = False) -> tuple[int, ...]:
@@ -194,7 +200,7 @@ def run_protocol(
         pools = lane_pools(int(min(n_cells, lanes or 32)), strict=settle is None)
     if not pools or any(p < 1 for p in pools) or list(pools) != sorted(pools, reverse=True):
         raise ValueError(f"pools must be decreasing positive lane counts, got {pools!r}")
-    pools = tuple(dict.fromkeys(int(min(n_cells, p)) for p in pools))
+    pools = tuple(dict.fromkeys(max(MIN_LANES, int(min(n_cells, p))) for p in pools))
     n_lanes = pools[0]
     if driven is None:
         driven = tuple(range(model.n_membranes))

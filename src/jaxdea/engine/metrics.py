@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 from ..models.cone import ConeState, hermite_coefficients
@@ -25,6 +26,32 @@ STATUS = {
     3: "step budget exhausted before the last cycle",
     4: "not converged: periodic steady state not reached (residual above tolerance)",
 }
+
+#: Periodicity residual (:func:`periodicity_residual`) above which a cell's last cycles are
+#: not periodic: its averages are not a steady-state power (:func:`steady_cells`; the
+#: evidence for the value is in docs/models.md, section 4, *Steady cells*).
+STEADY_RESIDUAL = 1e-3
+
+
+def steady_cells(status, residual, threshold: float = STEADY_RESIDUAL):
+    """Which cells ran their last cycle to the end and repeated it: status 0 or 4 (not
+    stopped by lock-up, a non-finite state or the step budget) and a finite periodicity
+    residual at most ``threshold``.
+
+    **Arguments:**
+
+    - `status`: the cells' status codes (:data:`STATUS`).
+    - `residual`: their periodicity residuals.
+    - `threshold`: the largest residual of a steady cell (:data:`STEADY_RESIDUAL`).
+
+    **Returns:**
+
+    A boolean numpy array of the same shape.
+    """
+    status, residual = np.asarray(status), np.asarray(residual, dtype=float)
+    finished = (status == 0) | (status == 4)
+    with np.errstate(invalid="ignore"):
+        return finished & np.isfinite(residual) & (residual <= threshold)
 
 
 class CycleMetrics(eqx.Module):

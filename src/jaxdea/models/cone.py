@@ -18,7 +18,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ..electrical import charge_rate
-from ..membrane import ConeMembrane
+from ..membrane import BREAKDOWN_FIELD, ConeMembrane
 from ..payloads import LinearViscous
 from ..signals import SquareWave
 from ..solver import Linearisation, exp_decay_weights
@@ -313,3 +313,11 @@ class Model(eqx.Module):
     voltage: Any  #: drive amplitude, V
     duty: Any  #: fraction of the period the voltage is on
     name: str = eqx.field(static=True, default="")
+    #: dielectric breakdown field, V/m (checked by the studies, not used by the dynamics)
+    breakdown_field: float = eqx.field(static=True, default=BREAKDOWN_FIELD)
+
+    def nominal_field(self) -> Array:
+        """The drive's nominal electric field, V/m: ``voltage`` over the thinnest membrane's
+        dielectric thickness ``H_m`` at the zero-voltage static equilibrium (eqs 6, 8)."""
+        d = self.actuator.deflections(self.actuator.equilibrium())
+        return self.voltage / jnp.min(self.actuator.membrane.kinematics(d)[3])

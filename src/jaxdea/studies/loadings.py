@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import ConfigError, SweepError, check_choice, finite_array
+from .._checks import ConfigError, FieldWarning, SweepError, check_choice, finite_array
 from ..models.cone import Loading, Model
 from ..payloads import LinearViscous
 from ..signals import SquareWave
@@ -26,6 +28,22 @@ def check_cone_model(model) -> None:
                           "jaxdea.load_config(path) first")
     raise ConfigError("model must be a square-wave cone from jaxdea.load_config (model = "
                       f"scdea_ls, dcdea_rr or dcdea_ls), got {type(model).__name__}")
+
+
+def warn_breakdown(model: Model, stacklevel: int = 3) -> None:
+    """Warn (:class:`~jaxdea.FieldWarning`) when ``model``'s nominal field (drive voltage over
+    the dielectric's thickness at the zero-voltage rest state,
+    :meth:`~jaxdea.Model.nominal_field`) exceeds its breakdown field (config key
+    ``drive.breakdown_field``). Nothing is checked while the voltage is traced."""
+    if isinstance(model.voltage, jax.core.Tracer):
+        return
+    field, limit = float(model.nominal_field()), float(model.breakdown_field)
+    if field > limit:
+        warnings.warn(FieldWarning(
+            f"nominal field {field / 1e6:.4g} MV/m (drive.voltage {float(model.voltage):g} V "
+            f"over the membrane's thickness at rest) is {field / limit:.3g}x the breakdown "
+            f"field {limit / 1e6:g} MV/m (drive.breakdown_field): a real film would break "
+            "down; the results are the model's only"), stacklevel=stacklevel)
 
 
 def drive_pattern(model: Model, drive: str, phase: float) -> tuple[np.ndarray, np.ndarray]:

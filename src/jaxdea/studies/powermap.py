@@ -59,7 +59,7 @@ from ..engine.protocols import Protocol, as_keywords
 from ..engine.sharding import cell_sharded
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Loading, Model
-from .loadings import DRIVES, Grid, check_cone_model, drive_pattern
+from .loadings import DRIVES, Grid, check_cone_model, drive_pattern, warn_breakdown
 from .mapstore import (
     Parts,
     StoreLock,
@@ -149,8 +149,11 @@ def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, suc
 
 
 def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
-    """P_max and f_at_P_max over f, among cells with status 0 (NaN where none is ok)."""
+    """P_max and f_at_P_max over f, among cells with status 0 that are steady (NaN where none
+    is; a Dataset without ``steady``, e.g. an older store, counts every cell as steady)."""
     ok = ds["status"] == 0
+    if "steady" in ds:
+        ok = ok & ds["steady"]
     p = ds["P_out"].where(ok, -np.inf)
     i = p.argmax("f")
     any_ok = ok.any("f")
@@ -158,7 +161,8 @@ def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
     f_at = ds["f"].isel(f=i).where(any_ok).drop_vars("f", errors="ignore")
     p_max = p_max.drop_vars("f", errors="ignore")
     ds["P_max"] = p_max.assign_attrs(
-        units="W", long_name="max over f of P_out among cells with status 0 (NaN: none ok)")
+        units="W", long_name="max over f of P_out among cells with status 0 and steady "
+                             "(NaN: none is)")
     ds["f_at_P_max"] = f_at.assign_attrs(units="Hz", long_name="frequency of P_max")
     return ds
 
@@ -193,9 +197,11 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
 
     Returns a Dataset with dims (M, c, f[, phase]) and variables P_out, P_in, P_in_signed,
     efficiency, amplitude, v_rms, status (0 = ok, see :data:`jaxdea.STATUS`), steps, residual
-    (periodicity residual of the last cycle), cycles_run, plus P_max and f_at_P_max (reduced
-    over f). ``attrs["chunks_computed"]`` and
-    ``attrs["chunks_reused"]`` count the work done by this call (not written to the store).
+    (periodicity residual of the last cycle), cycles_run, steady (false where the last cycles
+    are not periodic, :data:`jaxdea.engine.metrics.STEADY_RESIDUAL`), plus P_max and
+    f_at_P_max (reduced over f, among cells with status 0 that are steady).
+    ``attrs["chunks_computed"]`` and ``attrs["chunks_reused"]`` count the work done by this
+    call (not written to the store).
     All arguments are checked before any computation (:class:`SweepError` naming the argument).
 
     ``protocol`` may also be a protocol object (:class:`jaxdea.Paper`,
@@ -239,6 +245,7 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
         raise SweepError("resume=True needs a store (the path of the interrupted run's output)")
     shape = tuple(a.size for a in axes.values())
     _check_size(shape, tuple(axes), store)
+    warn_breakdown(model)
 
     # ---- chunking -----------------------------------------------------------------------
     devices = tuple(jax.devices())

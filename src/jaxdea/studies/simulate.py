@@ -16,7 +16,7 @@ import xarray as xr
 from .._checks import SweepError, check_protocol
 from ..models.cone import Model
 from ..solver import LawsonRK4, SemilinearTerm
-from .loadings import make_loadings
+from .loadings import make_loadings, warn_breakdown
 
 
 @eqx.filter_jit
@@ -64,6 +64,7 @@ def simulate(model: Model, *, mass: float, damping: float, freq: float, drive: s
         raise SweepError(f"points_per_cycle must be >= 8, got {points_per_cycle}")
     loading = jax.tree_util.tree_map(lambda a: a[0],
                                      make_loadings(model, mass, damping, freq, drive, phase))
+    warn_breakdown(model)
     ts = time_grid(float(freq), cycles, points_per_cycle,
                    np.asarray(loading.drive.edge_fractions()))
     ys, obs = _solve(model.actuator, loading, jnp.asarray(ts))

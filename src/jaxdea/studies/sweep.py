@@ -10,16 +10,13 @@ import jax
 import numpy as np
 import xarray as xr
 
-from .._checks import (SweepError, check_choice, check_early_exit, check_unit_interval,
-                       finite_array)
-from ..engine.batch import (DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors,
-                            run_cells)
-from ..engine.metrics import STATUS, CycleMetrics
+from .._checks import SweepError, check_choice, check_early_exit, check_unit_interval, finite_array
+from ..engine.batch import DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors, run_cells
+from ..engine.metrics import STATUS, STEADY_RESIDUAL, CycleMetrics, steady_cells
 from ..engine.protocols import Protocol, as_keywords
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
-from .loadings import make_loadings
-
+from .loadings import make_loadings, warn_breakdown
 
 #: Units and descriptions of the per-cell outputs.
 VARIABLES = {
@@ -35,6 +32,10 @@ VARIABLES = {
                       "last cycle (0 = exactly periodic)"),
     "cycles_run": ("1", "drive cycles integrated for the cell (all stages)"),
 }
+#: The steady flag, derived from status and residual (:func:`~jaxdea.engine.metrics.steady_cells`).
+STEADY = ("1", f"true where the last cycle ran to its end (status 0 or 4) and repeated itself: "
+               f"periodicity residual <= {STEADY_RESIDUAL:g}; false: the averages are not a "
+               "steady-state power")
 
 
 def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
@@ -55,8 +56,8 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
     to this tolerance (:data:`EARLY_EXIT`; ``None``: every cell runs all ``cycles``). The
     cells are split over all JAX devices (:func:`jaxdea.use_cpu_cores` makes one per CPU
     core). Returns a Dataset with dimension ``f`` and variables P_out, P_in,
-    P_in_signed, efficiency, amplitude, v_rms, status, steps, residual, cycles_run (units in
-    attrs).
+    P_in_signed, efficiency, amplitude, v_rms, status, steps, residual, cycles_run and
+    steady (false where the last cycles are not periodic; units in attrs).
 
     ``protocol`` may also be a protocol object, e.g. ``Paper(cycles=10, average=2)``
     (:class:`jaxdea.Paper`, :class:`jaxdea.Continuation`, :class:`jaxdea.Periodic`): its
@@ -79,6 +80,7 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
         if np.ndim(v) != 0:
             raise SweepError(f"{name} must be a scalar for a sweep (use powermap for grids)")
     loadings = make_loadings(model, mass, damping, freq, drive, phase)
+    warn_breakdown(model)
     successor = chain_successors(freq.size, direction=direction)
     devices = tuple(jax.devices())
     res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
@@ -104,6 +106,9 @@ def to_dataset(res: CycleMetrics, coords: dict[str, np.ndarray], attrs: dict) ->
     for name, (unit, desc) in VARIABLES.items():
         values = np.asarray(getattr(res, name)).reshape(shape)
         data[name] = xr.Variable(dims, values, attrs={"units": unit, "long_name": desc})
+    data["steady"] = xr.Variable(dims, steady_cells(data["status"].values,
+                                                    data["residual"].values),
+                                 attrs={"units": STEADY[0], "long_name": STEADY[1]})
     coord_attrs = {"f": ("Hz", "drive frequency"), "M": ("kg", "payload mass"),
                    "c": ("N s/m", "payload damping"), "phase": ("rad", "phase of B")}
     ds = xr.Dataset(
