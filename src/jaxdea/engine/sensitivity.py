@@ -1,0 +1,283 @@
+"""Implicit derivatives of periodic steady states: d(metrics)/d(parameters) at the orbit.
+
+A batch of designs (parameter vectors ``theta``, ``(K, n)``) each runs a batch of cells (a
+drive frequency, payload, phase per cell) through ``build(theta) -> (actuator, loadings)``.
+For every cell the periodic orbit ``y* = Phi_T(y*, theta)`` is found as in
+:func:`jaxdea.engine.periodic.periodic_cells` (settle from rest or from given states, then
+Newton shooting), and its metrics ``m = (P_out, P_in, efficiency, amplitude)`` over one
+period from ``y*`` are differentiated implicitly:
+
+    dy*/dtheta = (I - dPhi/dy)^-1 dPhi/dtheta,    dm/dtheta = dm/dtheta|_y + dm/dy dy*/dtheta,
+
+with ``dPhi/dy``, ``dPhi/dtheta``, ``dm/dy`` and ``dm/dtheta`` from one ``jax.jacfwd``
+through one period of the lane engine, tangents over the d dynamical states and the n
+parameters at once (cells are independent, so the same perturbation of every cell gives each
+cell its own Jacobian). The Newton pass that confirms convergence is that same pass: a
+converged cell costs one forward pass with ``d + n`` tangents on top of its primal solve.
+Nothing differentiates through the settling or the Newton iterations: they run on the host.
+
+:func:`implicit` wraps a host-side solver ``theta -> (values, jacobians)`` into a
+``jax.custom_jvp`` function: forward mode uses the Jacobians, and ``jax.grad`` /
+``jax.jacrev`` work by JAX's transposition of that linear tangent rule. :func:`steady_metrics`
+is the one-design case. The parameters must be concrete (the solver runs on the host): these
+functions work under ``jax.grad``, ``jax.jacfwd`` and ``jax.jacrev``, not under ``jax.jit``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from functools import partial
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..models.cone import ConeState
+from .batch import driven_membranes
+from .lanes import run_protocol
+from .metrics import periodicity_residual
+from .periodic import flatten_dynamical, with_dynamical
+from .step_control import StepControl
+
+#: The differentiated metrics of a cell, in this order.
+METRICS = ("P_out", "P_in", "efficiency", "amplitude")
+
+
+@dataclasses.dataclass(frozen=True)
+class Steady:
+    """Settings of the periodic solve behind the derivatives.
+
+    **Arguments:**
+
+    - `tol`: Newton tolerance on the scaled state (:func:`periodicity_residual`); the
+      derivatives are those at an orbit this close to periodic.
+    - `warmup`: most cycles of the settling stage.
+    - `newton`: most Newton iterations after it.
+    - `control`: step policy of the lane engine (tight: finite differences and the implicit
+      derivative agree to ~1e-4 only when the adaptive steps resolve the orbit well).
+    - `lanes`: lane pool per design.
+    """
+
+    tol: float = 1e-10
+    warmup: int = 30
+    newton: int = 10
+    control: StepControl = StepControl(rtol=1e-9, dt_max=2e-4)
+    lanes: int = 16
+
+
+class SteadyResult(NamedTuple):
+    """Converged orbits of a batch of designs x cells (numpy arrays, leading axes (K, C))."""
+
+    values: np.ndarray  #: (K, C, 4) metrics (:data:`METRICS`); NaN where status != 0
+    jac: np.ndarray | None  #: (K, C, 4, n) d metrics / d theta; None unless asked
+    status: np.ndarray  #: (K, C) 0 = ok, else :data:`jaxdea.STATUS`
+    state: ConeState  #: (K, C, ...) the state y* at the start of the converged period
+    residual: np.ndarray  #: (K, C) last Newton step (scaled), or the settling residual
+
+
+def _metric_stack(res) -> jax.Array:
+    return jnp.stack([getattr(res, k) for k in METRICS], axis=-1)
+
+
+def _settle(build, theta, initial, *, warmup, tol, control, lanes, driven):
+    def one(b, th, y0):
+        act, ld = b(th)
+        return run_protocol(act, ld, cycles=warmup, average=1, settle=tol, control=control,
+                            lanes=lanes, initial=y0, driven=driven)
+
+    if initial is None:
+        return jax.vmap(lambda b, th: one(b, th, None))(build, theta)
+    return jax.vmap(one)(build, theta, initial)
+
+
+def _shoot(build, theta, y, active, *, params, control, lanes, driven):
+    """One period of every active cell from ``y`` with the Jacobians of the end state and of
+    the metrics with respect to the start state (and the parameters if ``params``)."""
+
+    def one(build, th, y, act):
+        flat = flatten_dynamical(y)
+        d, n = flat.shape[-1], th.shape[0]
+
+        def period(z):
+            actuator, ld = build(th + z[d:] if params else th)
+            res = run_protocol(actuator, ld, cycles=1, average=1,
+                               initial=with_dynamical(y, flat + z[:d]), active=act,
+                               control=control, pools=(lanes,), driven=driven)
+            out = (flatten_dynamical(res.final_state), _metric_stack(res))
+            return out, res
+
+        z0 = jnp.zeros(d + n if params else d, flat.dtype)
+        (j_out, j_m), res = jax.jacfwd(period, has_aux=True)(z0)
+        out = flatten_dynamical(res.final_state)
+        eye = jnp.eye(d, dtype=flat.dtype)
+        safe = jnp.where(act[:, None, None], j_out[..., :d] - eye, -eye)
+        step = -jax.vmap(jnp.linalg.solve)(safe, out - flat)
+        step = jnp.where(act[:, None], step, 0.0)
+        size = jax.vmap(periodicity_residual)(with_dynamical(y, flat + step), y)
+        return res, j_out, j_m, step, size
+
+    return jax.vmap(one)(build, theta, y, active)
+
+
+_SETTLE = eqx.filter_jit(_settle)
+_SHOOT = eqx.filter_jit(_shoot)
+
+
+def _host(tree):
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
+def stack_designs(builds) -> Callable:
+    """One build per design stacked into one (leading axis = designs) for
+    :func:`solve_designs` ``(stacked=True)``: designs whose cells differ (e.g. frequencies)."""
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *builds)
+
+
+def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initial=None,
+                  jac: bool = True, stacked: bool = False) -> SteadyResult:
+    """Periodic orbits, metrics and (optionally) their implicit derivatives.
+
+    **Arguments:**
+
+    - `build`: ``theta (n,) -> (actuator, loadings)`` with ``C`` cells; a pytree callable
+      (an ``equinox.Module``), so that new values of its arrays do not recompile.
+    - `theta`: ``(K, n)`` parameter vectors, one per design (concrete).
+    - `settings`: :class:`Steady`.
+    - `initial`: start states ``(K, C, ...)`` of the settling stage (default: rest).
+    - `jac`: also return ``d metrics / d theta``.
+    - `stacked`: ``build``'s arrays carry a leading design axis (:func:`stack_designs`);
+      default: one build shared by every design.
+
+    **Returns:**
+
+    A :class:`SteadyResult`.
+    """
+    theta = np.asarray(theta, dtype=float)
+    if theta.ndim != 2:
+        raise ValueError(f"theta must be (designs, parameters), got shape {theta.shape}")
+    s = settings
+    k = theta.shape[0]
+    if not stacked:
+        build = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k,) + jnp.shape(a)),
+                                       build)
+    _, ld0 = jax.tree_util.tree_map(lambda a: a[0], build)(jnp.asarray(theta[0]))
+    driven = driven_membranes(ld0)
+    n_cells = int(ld0.drive.frequency.shape[0])
+    lanes = int(min(n_cells, s.lanes))
+    th = jnp.asarray(theta)
+    res = _host(_SETTLE(build, th, initial, warmup=int(s.warmup), tol=float(s.tol),
+                        control=s.control, lanes=lanes, driven=driven))
+    status = np.asarray(res.status).copy()
+    y = res.final_state
+    residual = np.asarray(res.residual).copy()
+    d = int(flatten_dynamical(y).shape[-1])
+    n = theta.shape[1]
+    values = np.full((k, n_cells, len(METRICS)), np.nan)
+    jacs = np.full((k, n_cells, len(METRICS), n), np.nan) if jac else None
+    final = jax.tree_util.tree_map(np.array, y)
+    # every cell that settled or needs shooting gets at least one Jacobian pass: it confirms
+    # convergence and gives the derivatives at the same time
+    pending = (status == 0) | (status == 4)
+    status = np.where(pending, 4, status)
+    for _ in range(int(s.newton) + 1):
+        if not pending.any():
+            break
+        r, j_out, j_m, step, size = _host(_SHOOT(
+            build, th, y, jnp.asarray(pending), params=jac, control=s.control, lanes=lanes,
+            driven=driven))
+        ok = np.asarray(r.status) == 0
+        converged = pending & ok & (size < s.tol)
+        failed = pending & ~ok
+        status = np.where(failed, r.status, np.where(converged, 0, status))
+        residual = np.where(pending, size, residual)
+        if converged.any():
+            m = _metric_stack(r)
+            values[converged] = np.asarray(m)[converged]
+            final = jax.tree_util.tree_map(
+                lambda a, b: np.where(converged.reshape(converged.shape + (1,) * (a.ndim - 2)),
+                                      a, b), y, final)
+            if jac:
+                a = j_out[converged][..., :d]
+                b = j_out[converged][..., d:]
+                dy = np.linalg.solve(np.eye(d) - a, b)
+                jacs[converged] = j_m[converged][..., d:] + j_m[converged][..., :d] @ dy
+        pending = pending & ok & ~converged
+        flat = np.asarray(flatten_dynamical(y)) + np.where(pending[..., None], step, 0.0)
+        y = _host(with_dynamical(y, jnp.asarray(flat)))
+    return SteadyResult(values=values, jac=jacs, status=status,
+                        state=final, residual=residual)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def implicit(solve: Callable, theta):
+    """A host-side solver as a differentiable JAX function of ``theta``.
+
+    **Arguments:**
+
+    - `solve`: ``theta (concrete numpy (n,)), need_jac -> (values, jacobians)``: ``values``
+      a dict of arrays, ``jacobians`` the same keys with one more trailing axis of size n
+      (None when ``need_jac`` is false). Keys whose jacobian is None (e.g. a status) get a
+      zero tangent.
+    - `theta`: ``(n,)`` parameters (concrete, or a JAX autodiff tracer of concrete values).
+
+    **Returns:**
+
+    ``values`` as JAX arrays; differentiable in forward (``jax.jvp``, ``jax.jacfwd``) and
+    reverse mode (``jax.grad``, ``jax.jacrev``; the tangent rule is linear in the tangent).
+    """
+    with jax.ensure_compile_time_eval():  # the host solver computes eagerly
+        values, _ = solve(_concrete(theta), False)
+    return {k: jnp.asarray(v) for k, v in values.items()}
+
+
+@implicit.defjvp
+def _implicit_jvp(solve, primals, tangents):
+    (theta,), (dtheta,) = primals, tangents
+    with jax.ensure_compile_time_eval():  # the host solver computes eagerly
+        values, jacs = solve(_concrete(theta), True)
+    out = {k: jnp.asarray(v) for k, v in values.items()}
+    tan = {}
+    for k, v in out.items():
+        j = None if jacs is None else jacs.get(k)
+        tan[k] = jnp.zeros_like(v) if j is None else jnp.asarray(j) @ dtheta
+    return out, tan
+
+
+def _concrete(theta) -> np.ndarray:
+    try:
+        return np.asarray(theta, dtype=float)
+    except jax.errors.TracerArrayConversionError:
+        raise TypeError("the steady-state objectives solve on the host: call them under "
+                        "jax.grad / jax.jacfwd / jax.jacrev, not under jax.jit or vmap") from None
+
+
+def steady_metrics(build: Callable, theta, settings: Steady = Steady()) -> dict[str, jax.Array]:
+    """Metrics of the periodic orbit of one design, differentiable in ``theta``.
+
+    **Arguments:**
+
+    - `build`: ``theta (n,) -> (actuator, loadings)`` (see :func:`solve_designs`).
+    - `theta`: ``(n,)`` parameters.
+    - `settings`: :class:`Steady`.
+
+    **Returns:**
+
+    ``{name: (C,)}`` for :data:`METRICS` (NaN at failed cells) and ``"status"`` (float,
+    0 = ok; zero derivative).
+    """
+    return implicit(_CellSolver(build, settings), theta)
+
+
+class _CellSolver(eqx.Module):
+    build: Callable
+    settings: Steady = eqx.field(static=True)
+
+    def __call__(self, theta: np.ndarray, need_jac: bool):
+        r = solve_designs(self.build, theta[None], settings=self.settings, jac=need_jac)
+        values = {k: r.values[0, :, i] for i, k in enumerate(METRICS)}
+        values["status"] = r.status[0].astype(float)
+        jacs = None if r.jac is None else {k: r.jac[0, :, i] for i, k in enumerate(METRICS)}
+        return values, jacs

@@ -1,0 +1,373 @@
+"""Design objectives at the periodic steady state, differentiable in named parameters.
+
+:func:`steady_objectives` gives P_out, P_in, efficiency and amplitude of the converged
+periodic orbit at given frequencies; :func:`peak_power` gives P_max over a band and the
+frequency where it occurs. Both are differentiable (``jax.grad``, ``jax.jacfwd``,
+``jax.jacrev``) in a dict of named scalars: model parameters by their
+:mod:`jaxdea.params` path (``"actuator.spring_stiffness"``, ``"membrane.prestretch"``,
+``"voltage"``, ``"duty"``, ...) and the payload and drive values ``"mass"``, ``"damping"``,
+``"freq"``. The derivatives are implicit at the orbit (:mod:`jaxdea.engine.sensitivity`);
+P_max uses the envelope theorem: ``dP_max/dtheta = dP/dtheta`` at the peak frequency f*.
+
+The peak is found by one batched periodic sweep over a coarse grid of ``grid`` frequencies
+(with ``dP/df`` of every cell from the same implicit derivative), then ``refine`` levels of
+``grid`` cells around the maximum of the cubic Hermite interpolant of (P, dP/df) on the
+intervals next to the best cell, each warm-started from the nearest orbit of the level
+before. The result is the best evaluated cell, where ``dP/df`` is ~0 (or a band edge).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import CalibrationError, SweepError, finite_array
+from ..engine.sensitivity import METRICS, Steady, implicit, solve_designs, stack_designs
+from ..engine.step_control import StepControl
+from ..models.cone import Model
+from ..params import make_params, resolve_names, with_theta
+from .loadings import cell_loadings, check_cone_model, drive_pattern
+
+#: Names of the payload and drive values that can be differentiated besides model paths.
+PAYLOAD_NAMES = ("mass", "damping", "freq")
+
+#: Default periodic solve of the design study: Newton to 1e-8, engine rtol 1e-7 (central
+#: differences of P_out agree with the implicit derivative to ~1e-7 there).
+DESIGN_STEADY = Steady(tol=1e-8, warmup=30, newton=10,
+                       control=StepControl(rtol=1e-7, dt_max=1e-3))
+
+
+class Builder(eqx.Module):
+    """``theta -> (actuator, loadings)`` of one design over a batch of cells.
+
+    ``theta`` holds the model parameters ``params`` (in order), then the payload and drive
+    values named in ``slots`` (positions in ``theta``, -1 = not varied), then, if
+    ``shift >= 0``, a frequency shift added to every cell's frequency.
+    """
+
+    model: Model
+    params: tuple = eqx.field(static=True)
+    slots: tuple = eqx.field(static=True)  # theta positions of mass, damping, freq (-1: none)
+    shift: int = eqx.field(static=True)
+    mass: jax.Array
+    damping: jax.Array
+    freq: jax.Array
+    on: jax.Array
+    phases: jax.Array
+
+    def __call__(self, theta):
+        model = with_theta(self.model, list(self.params), theta[:len(self.params)])
+        n = self.freq.shape[0]
+        m, c, f = (self.mass, self.damping, self.freq)
+        im, ic, jf = self.slots
+        m = m if im < 0 else jnp.broadcast_to(theta[im], (n,))
+        c = c if ic < 0 else jnp.broadcast_to(theta[ic], (n,))
+        f = f if jf < 0 else jnp.broadcast_to(theta[jf], (n,))
+        if self.shift >= 0:
+            f = f + theta[self.shift]
+        amp = jnp.broadcast_to(self.on * model.voltage, (n, self.on.shape[0]))
+        ph = jnp.broadcast_to(self.phases, (n, self.on.shape[0]))
+        return model.actuator, cell_loadings(amp, f, model.duty, ph, m, c)
+
+
+class Sub(eqx.Module):
+    """``build`` with only the ``free`` entries of ``theta`` varied (the rest held)."""
+
+    build: Builder
+    theta: jax.Array
+    free: tuple = eqx.field(static=True)
+
+    def __call__(self, sub):
+        return self.build(self.theta.at[jnp.asarray(self.free)].set(sub))
+
+
+def resolve(model: Model, names) -> dict[str, str]:
+    """Validated names: ``{given name: full model path or payload name}``, in the order given.
+
+    **Arguments:**
+
+    - `model`: a cone :class:`~jaxdea.Model`.
+    - `names`: parameter names (model paths or suffixes, or :data:`PAYLOAD_NAMES`).
+
+    **Returns:**
+
+    The mapping; :class:`~jaxdea.SweepError` for an unknown, ambiguous or repeated name.
+    """
+    names = list(names)
+    rest = [n for n in names if n not in PAYLOAD_NAMES]
+    try:
+        full = resolve_names(model, rest) if rest else []
+    except CalibrationError as e:
+        raise SweepError(str(e).replace(" in fit", " in vary")) from None
+    to_full = dict(zip(rest, full))
+    return {n: to_full.get(n, n) for n in names}
+
+
+def _split(mapping: dict) -> tuple[list[str], list[str], list[str]]:
+    """(given names in theta order, model paths, payload names): model paths first."""
+    model_keys = [k for k, v in mapping.items() if v not in PAYLOAD_NAMES]
+    pay_keys = [k for k, v in mapping.items() if v in PAYLOAD_NAMES]
+    return (model_keys + pay_keys, [mapping[k] for k in model_keys],
+            [mapping[k] for k in pay_keys])
+
+
+def _builder(model, full, pay, *, mass, damping, freq, drive, phase, shift):
+    check_cone_model(model)
+    on, phases = drive_pattern(model, drive, 0.0 if phase is None else float(phase))
+    params = tuple(make_params(model, full, transforms={n: "linear" for n in full}))
+    pos = {n: len(full) + i for i, n in enumerate(pay)}
+    slots = tuple(pos.get(k, -1) for k in PAYLOAD_NAMES)
+    for name, v in (("mass", mass), ("damping", damping)):
+        if name not in pay and v is None:
+            raise SweepError(f"{name} is needed (allowed range [0, inf)), got None")
+    f = np.atleast_1d(np.asarray(freq, float))
+    n = f.size
+    mass = 0.0 if mass is None else float(finite_array("mass", mass, nonnegative=True)[0])
+    damping = 0.0 if damping is None else float(
+        finite_array("damping", damping, nonnegative=True)[0])
+    return Builder(model=model, params=params, slots=slots,
+                   shift=len(full) + len(pay) if shift else -1,
+                   mass=jnp.full(n, mass), damping=jnp.full(n, damping), freq=jnp.asarray(f),
+                   on=jnp.asarray(on), phases=jnp.asarray(phases))
+
+
+def _theta(values: dict, keys: list):
+    if not keys:
+        return jnp.zeros(0)
+    return jnp.stack([jnp.asarray(values[k], dtype=jnp.float64).reshape(()) for k in keys])
+
+
+class _AtFrequency(eqx.Module):
+    build: Builder
+    settings: Steady = eqx.field(static=True)
+
+    def __call__(self, theta, need_jac):
+        r = solve_designs(self.build, theta[None], settings=self.settings, jac=need_jac)
+        values = {k: r.values[0, :, i] for i, k in enumerate(METRICS)}
+        values["status"] = r.status[0].astype(float)
+        jacs = None if r.jac is None else {k: r.jac[0, :, i] for i, k in enumerate(METRICS)}
+        return values, jacs
+
+
+def steady_objectives(model: Model, values: dict | None = None, *, mass=None, damping=None,
+                      freq=None, drive: str = "A", phase: float | None = None,
+                      settings: Steady = DESIGN_STEADY) -> dict[str, jax.Array]:
+    """Metrics of the periodic steady state, differentiable in named parameters.
+
+    **Arguments:**
+
+    - `model`: a cone :class:`~jaxdea.Model`.
+    - `values`: ``{name: scalar}``: model parameters (paths of :mod:`jaxdea.params`) and
+      ``"mass"`` (kg), ``"damping"`` (N s/m), ``"freq"`` (Hz) set to these values and
+      differentiated; e.g. ``jax.grad(lambda v: steady_objectives(model, v, ...)["P_out"])``.
+    - `mass`, `damping`: payload M (kg) and c (N s/m), unless in ``values``.
+    - `freq`: drive frequency or 1-D array of them (Hz), unless ``"freq"`` is in ``values``.
+    - `drive`, `phase`: the drive case (``"A"``, ``"B"``, ``"both"`` with B's delay, rad).
+    - `settings`: the periodic solve (:class:`~jaxdea.engine.sensitivity.Steady`).
+
+    **Returns:**
+
+    ``{"P_out" (W), "P_in" (W), "efficiency", "amplitude" (m), "status"}``, each with the
+    shape of ``freq`` (NaN where status != 0).
+    """
+    values = dict(values or {})
+    keys, full, pay = _split(resolve(model, list(values)))
+    if "freq" in pay:
+        if freq is not None:
+            raise SweepError("freq is given twice: in values and as freq=; drop one")
+        freq = 1.0
+    if freq is None:
+        raise SweepError("freq is needed (allowed range (0, inf) Hz), got None")
+    shape = np.shape(freq)
+    f = finite_array("freq", freq, positive=True)
+    build = _builder(model, full, pay, mass=mass, damping=damping, freq=f, drive=drive,
+                     phase=phase, shift=False)
+    out = implicit(_AtFrequency(build, settings), _theta(values, keys))
+    return {k: v.reshape(shape) for k, v in out.items()}
+
+
+def _hermite_peak(f0, p0, g0, f1, p1, g1, n=256):
+    """Maximum of the cubic Hermite interpolant of (P, dP/df) on [f0, f1]: (f, P)."""
+    h = f1 - f0
+    s = np.linspace(0.0, 1.0, n)
+    h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+    h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+    p = h00 * p0 + h10 * h * g0 + h01 * p1 + h11 * h * g1
+    i = int(np.argmax(p))
+    return f0 + s[i] * h, p[i]
+
+
+def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 2,
+                 settings: Steady = DESIGN_STEADY, jac: bool = True) -> dict[str, np.ndarray]:
+    """P_max over a band for a batch of designs (host-side; the study's workhorse).
+
+    **Arguments:**
+
+    - `build`: a :class:`Builder` with ``grid`` cells and a frequency shift (last entry of
+      ``theta``, held at 0 here).
+    - `theta`: ``(K, n)`` designs (the shift included).
+    - `band`: ``(f_lo, f_hi)``, Hz.
+    - `grid`: cells per level; `refine`: refinement levels after the coarse grid.
+    - `settings`: the periodic solve; `jac`: also the gradient (envelope theorem).
+
+    **Returns:**
+
+    ``{"P_max": (K,), "f": (K,), "status": (K,), "grad": (K, n) or None}``.
+    """
+    theta = np.asarray(theta, float)
+    k, n = theta.shape
+    lo, hi = band
+    f = np.tile(np.linspace(lo, hi, grid), (k, 1))
+    sub_free = (n - 1,)
+    state, samples = None, None
+    for level in range(refine + 1):
+        last = level == refine
+        full_jac = jac and last
+        r = _solve_grid(build, theta, f, state, settings, full_jac, sub_free)
+        p, dpdf = r.values[..., 0], (r.jac[..., 0, -1] if r.jac is not None else None)
+        p = np.where(r.status == 0, p, -np.inf)
+        samples = (f, p, dpdf, r)
+        if last:
+            break
+        f_new, state_new = [], []
+        for i in range(k):
+            fi, pi, gi = f[i], p[i], np.nan_to_num(dpdf[i])
+            order = np.argsort(fi)
+            fi, pi, gi = fi[order], pi[order], gi[order]
+            j = int(np.argmax(pi))
+            best_f, best_p = fi[j], pi[j]
+            for a in (j - 1, j):
+                if 0 <= a < grid - 1 and np.isfinite(pi[a]) and np.isfinite(pi[a + 1]) \
+                        and fi[a + 1] > fi[a]:
+                    fc, pc = _hermite_peak(fi[a], pi[a], gi[a], fi[a + 1], pi[a + 1], gi[a + 1])
+                    if pc > best_p:
+                        best_f, best_p = fc, pc
+            width = max(fi[min(j + 1, grid - 1)] - fi[max(j - 1, 0)], 1e-9 * best_f) / grid
+            offsets = (np.arange(grid) - grid // 2) / (grid // 2)
+            fn = np.clip(best_f + width * offsets, lo, hi)
+            f_new.append(fn)
+            near = order[np.abs(fi[:, None] - fn[None, :]).argmin(axis=0)]
+            state_new.append(near)
+        f_next = np.stack(f_new)
+        idx = np.stack(state_new)
+        state = jax.tree_util.tree_map(
+            lambda a: np.take_along_axis(np.asarray(a), idx.reshape(idx.shape + (1,) * (
+                np.ndim(a) - 2)), axis=1), r.state)
+        f = f_next
+    f, p, dpdf, r = samples
+    j = np.argmax(p, axis=1)
+    rows = np.arange(k)
+    ok = np.isfinite(p[rows, j])
+    out = dict(P_max=np.where(ok, p[rows, j], np.nan), f=f[rows, j],
+               status=np.where(ok, 0, np.max(r.status, axis=1)), grad=None)
+    if jac:
+        out["grad"] = r.jac[rows, j, 0, :]
+    return out
+
+
+def _solve_grid(build, theta, f, state, settings, full_jac, sub_free):
+    """One level: the designs' cells at frequencies ``f`` (K, G), in one batched call, with
+    the Jacobian over the shift (and every parameter if ``full_jac``)."""
+    k = theta.shape[0]
+    builds = [eqx.tree_at(lambda x: x.freq, build, jnp.asarray(f[i])) for i in range(k)]
+    if not full_jac:
+        builds = [Sub(b, jnp.asarray(theta[i]), sub_free) for i, b in enumerate(builds)]
+    th = theta if full_jac else theta[:, list(sub_free)]
+    init = None if state is None else jax.tree_util.tree_map(jnp.asarray, state)
+    return solve_designs(stack_designs(builds), th, settings=settings, initial=init, jac=True,
+                         stacked=True)
+
+
+class _Peak(eqx.Module):
+    build: Builder
+    band: tuple = eqx.field(static=True)
+    grid: int = eqx.field(static=True)
+    refine: int = eqx.field(static=True)
+    settings: Steady = eqx.field(static=True)
+
+    def __call__(self, theta, need_jac):
+        th = np.concatenate([theta, [0.0]])[None]
+        r = peak_designs(self.build, th, self.band, grid=self.grid, refine=self.refine,
+                         settings=self.settings, jac=need_jac)
+        values = {"P_max": r["P_max"][0], "f_at_P_max": r["f"][0],
+                  "status": float(r["status"][0])}
+        jacs = None if not need_jac else {"P_max": r["grad"][0, :-1]}
+        return values, jacs
+
+
+def check_band(band) -> tuple[float, float]:
+    """``band`` as ``(f_lo, f_hi)`` with ``0 < f_lo < f_hi`` finite; else SweepError."""
+    try:
+        lo, hi = (float(x) for x in band)
+    except (TypeError, ValueError):
+        raise SweepError(f"band must be a pair (f_lo, f_hi) in Hz, got {band!r}") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+        raise SweepError(f"band = ({lo:g}, {hi:g}) Hz: need 0 < f_lo < f_hi, finite (allowed "
+                         "range (0, inf) Hz)")
+    return lo, hi
+
+
+def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=None,
+               band=(1.0, 200.0), drive: str = "A", phase: float | None = None,
+               grid: int = 8, refine: int = 2,
+               settings: Steady = DESIGN_STEADY) -> dict[str, jax.Array]:
+    """P_max over a frequency band at the periodic steady state, differentiable in named
+    parameters (envelope theorem: ``dP_max/dtheta = dP/dtheta`` at f*).
+
+    **Arguments:**
+
+    - `model`: a cone :class:`~jaxdea.Model`.
+    - `values`: ``{name: scalar}`` as in :func:`steady_objectives` (not ``"freq"``).
+    - `mass`, `damping`: payload M (kg) and c (N s/m), unless in ``values``.
+    - `band`: ``(f_lo, f_hi)``, Hz.
+    - `drive`, `phase`: the drive case.
+    - `grid`: frequencies per level (>= 3); `refine`: refinement levels (>= 0).
+    - `settings`: the periodic solve.
+
+    **Returns:**
+
+    ``{"P_max" (W), "f_at_P_max" (Hz; zero derivative), "status"}``.
+    """
+    values = dict(values or {})
+    keys, full, pay = _split(resolve(model, list(values)))
+    if "freq" in pay:
+        raise SweepError("freq cannot be varied in peak_power: the band fixes it")
+    lo, hi = check_band(band)
+    if isinstance(grid, bool) or not isinstance(grid, int) or grid < 3:
+        raise SweepError(f"grid must be an integer >= 3, got {grid!r}")
+    if isinstance(refine, bool) or not isinstance(refine, int) or refine < 0:
+        raise SweepError(f"refine must be an integer >= 0, got {refine!r}")
+    build = _builder(model, full, pay, mass=mass, damping=damping,
+                     freq=np.linspace(lo, hi, grid), drive=drive, phase=phase, shift=True)
+    return implicit(_Peak(build, (lo, hi), grid, refine, settings), _theta(values, keys))
+
+
+def objective_function(model: Model, names, objective: str | Callable, **kw) -> Callable:
+    """``values -> scalar`` for :func:`jaxdea.optimise`'s objectives (``"pmax"``,
+    ``"power"``, ``"efficiency"`` or a callable of the :func:`steady_objectives` dict).
+
+    **Arguments:**
+
+    - `model`, `names`: the model and the varied names.
+    - `objective`: the objective.
+    - `kw`: ``mass``, ``damping``, ``freq`` or ``band``, ``drive``, ``phase``, ``settings``.
+
+    **Returns:**
+
+    The function of a ``{name: value}`` dict, differentiable by ``jax.grad``.
+    """
+    kw = dict(kw)
+    band = kw.pop("band", None)
+    if objective == "pmax":
+        kw.pop("freq", None)
+        return lambda v: peak_power(model, v, band=band, **kw)["P_max"]
+    kw.pop("grid", None)
+    kw.pop("refine", None)
+    key = {"power": "P_out", "efficiency": "efficiency"}.get(objective)
+    if key is not None:
+        return lambda v: jnp.sum(steady_objectives(model, v, **kw)[key])
+    return lambda v: objective(steady_objectives(model, v, **kw))
