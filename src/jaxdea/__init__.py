@@ -53,7 +53,9 @@ from .engine.sharding import use_cpu_cores  # noqa: E402
 from .engine.step_control import StepControl  # noqa: E402
 
 # studies
+from .studies.design import peak_power, steady_objectives  # noqa: E402
 from .studies.loadings import make_loadings  # noqa: E402
+from .studies.optimise import OptimiseResult, optimise  # noqa: E402
 from .studies.powermap import powermap  # noqa: E402
 from .studies.rotary import rotary_study  # noqa: E402
 from .studies.simulate import simulate  # noqa: E402
@@ -84,8 +86,9 @@ __all__ = [
     "EARLY_EXIT", "STATUS", "Continuation", "CycleMetrics", "Paper", "Periodic", "StepControl",
     "run_protocol", "use_cpu_cores",
     # studies
-    "amplitude_frequency", "displacement", "hysteresis_area", "make_loadings", "powermap",
-    "rotary_study", "simulate", "sweep", "transient",
+    "OptimiseResult", "amplitude_frequency", "displacement", "hysteresis_area",
+    "make_loadings", "optimise", "peak_power", "powermap", "rotary_study", "simulate",
+    "steady_objectives", "sweep", "transient",
     # calibration
     "CalibrationResult", "FrequencyResponse", "TimeSeries", "calibrate", "load_data",
     "parameter_names",

@@ -107,7 +107,7 @@ def resolve(model: Model, names) -> dict[str, str]:
     return {n: to_full.get(n, n) for n in names}
 
 
-def _split(mapping: dict) -> tuple[list[str], list[str], list[str]]:
+def split_names(mapping: dict) -> tuple[list[str], list[str], list[str]]:
     """(given names in theta order, model paths, payload names): model paths first."""
     model_keys = [k for k, v in mapping.items() if v not in PAYLOAD_NAMES]
     pay_keys = [k for k, v in mapping.items() if v in PAYLOAD_NAMES]
@@ -115,7 +115,7 @@ def _split(mapping: dict) -> tuple[list[str], list[str], list[str]]:
             [mapping[k] for k in pay_keys])
 
 
-def _builder(model, full, pay, *, mass, damping, freq, drive, phase, shift):
+def make_builder(model, full, pay, *, mass, damping, freq, drive, phase, shift):
     check_cone_model(model)
     on, phases = drive_pattern(model, drive, 0.0 if phase is None else float(phase))
     params = tuple(make_params(model, full, transforms={n: "linear" for n in full}))
@@ -175,7 +175,7 @@ def steady_objectives(model: Model, values: dict | None = None, *, mass=None, da
     shape of ``freq`` (NaN where status != 0).
     """
     values = dict(values or {})
-    keys, full, pay = _split(resolve(model, list(values)))
+    keys, full, pay = split_names(resolve(model, list(values)))
     if "freq" in pay:
         if freq is not None:
             raise SweepError("freq is given twice: in values and as freq=; drop one")
@@ -184,7 +184,7 @@ def steady_objectives(model: Model, values: dict | None = None, *, mass=None, da
         raise SweepError("freq is needed (allowed range (0, inf) Hz), got None")
     shape = np.shape(freq)
     f = finite_array("freq", freq, positive=True)
-    build = _builder(model, full, pay, mass=mass, damping=damping, freq=f, drive=drive,
+    build = make_builder(model, full, pay, mass=mass, damping=damping, freq=f, drive=drive,
                      phase=phase, shift=False)
     out = implicit(_AtFrequency(build, settings), _theta(values, keys))
     return {k: v.reshape(shape) for k, v in out.items()}
@@ -333,7 +333,7 @@ def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=N
     ``{"P_max" (W), "f_at_P_max" (Hz; zero derivative), "status"}``.
     """
     values = dict(values or {})
-    keys, full, pay = _split(resolve(model, list(values)))
+    keys, full, pay = split_names(resolve(model, list(values)))
     if "freq" in pay:
         raise SweepError("freq cannot be varied in peak_power: the band fixes it")
     lo, hi = check_band(band)
@@ -341,7 +341,7 @@ def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=N
         raise SweepError(f"grid must be an integer >= 3, got {grid!r}")
     if isinstance(refine, bool) or not isinstance(refine, int) or refine < 0:
         raise SweepError(f"refine must be an integer >= 0, got {refine!r}")
-    build = _builder(model, full, pay, mass=mass, damping=damping,
+    build = make_builder(model, full, pay, mass=mass, damping=damping,
                      freq=np.linspace(lo, hi, grid), drive=drive, phase=phase, shift=True)
     return implicit(_Peak(build, (lo, hi), grid, refine, settings), _theta(values, keys))
 

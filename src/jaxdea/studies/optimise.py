@@ -1,0 +1,301 @@
+"""Bounded multi-start design optimisation of steady-state power (:func:`optimise`).
+
+All starts run in lockstep: every iteration evaluates the objective and its implicit
+gradient (:mod:`jaxdea.studies.design`) of every start in one batched call, then takes a
+projected-gradient ascent step per start in the unit box of the bounds (Barzilai-Borwein
+step length, halved on a decrease, a failed orbit or a step that would exceed the field
+limit). The nominal field ``voltage / H_m`` at the zero-voltage static equilibrium
+(:func:`nominal_field`) must stay <= ``max_field``; no returned design violates it, and
+every returned design has a converged orbit without lock-up or pull-in (status 0).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import JaxdeaError, SweepError, check_int
+from ..config.cones import ACTUATOR_FIELDS, DRIVE_FIELDS, MATERIAL_FIELDS, MEMBRANE_FIELDS
+from ..engine.sensitivity import Steady, solve_designs
+from ..models.cone import Model
+from ..params import get_params, set_params
+from .design import DESIGN_STEADY, check_band, make_builder, peak_designs, resolve, split_names
+from .loadings import check_cone_model
+
+OBJECTIVES = ("pmax", "power", "efficiency")
+
+
+def nominal_field(model: Model) -> jax.Array:
+    """Largest nominal field ``voltage / H_m`` over the membranes at the zero-voltage static
+    equilibrium, V/m (differentiable).
+
+    **Arguments:**
+
+    - `model`: a cone :class:`~jaxdea.Model`.
+
+    **Returns:**
+
+    The field, V/m (paper 000 drives at 80 MV/m).
+    """
+    act = model.actuator
+    d = act.deflections(act.equilibrium())
+    h_m = act.membrane.kinematics(d)[3]
+    return model.voltage / jnp.min(h_m)
+
+
+@dataclass
+class OptimiseResult:
+    """What :func:`optimise` returns (SI units)."""
+
+    model: Model  #: the optimised model
+    values: dict  #: the varied parameters at the optimum
+    objective: float  #: objective there (W for power objectives)
+    f_at_P_max: float | None  #: peak frequency (objective "pmax"), Hz
+    gradient: dict  #: d objective / d parameter at the optimum
+    active: list  #: the active bounds and constraints, in words
+    field: float  #: nominal field at the optimum, V/m
+    start_objective: float  #: objective of the first start (the given design if in bounds)
+    history: list = field(default_factory=list)  #: per iteration: the starts' objectives
+
+    def to_toml(self, path) -> Path:
+        """Write the optimised model as a config that :func:`jaxdea.load_config` reads.
+
+        **Arguments:**
+
+        - `path`: the file to write (parent folders are made).
+
+        **Returns:**
+
+        The path.
+        """
+        return write_cone_toml(self.model, path, header=f"optimised: {self.values}")
+
+
+def write_cone_toml(model: Model, path, header: str = "") -> Path:
+    """A cone config (``configs/*.toml`` layout) with the values of ``model``.
+
+    **Arguments:**
+
+    - `model`: a cone :class:`~jaxdea.Model` (with its ``name``).
+    - `path`: where to write.
+    - `header`: a comment line at the top.
+
+    **Returns:**
+
+    The path.
+    """
+    act, mem = model.actuator, model.actuator.membrane
+    fmt = lambda obj, names: "".join(  # noqa: E731
+        f"{k} = {float(getattr(obj, k))!r}\n" for k in names)
+    text = (f"# {header}\n" if header else "") + f'model = "{act.name}"\n\n[membrane]\n'
+    text += fmt(mem, MEMBRANE_FIELDS)
+    for part in ("dielectric", "electrode"):
+        text += f"\n[membrane.{part}]\n" + fmt(getattr(mem, part), MATERIAL_FIELDS)
+    text += "\n[drive]\n" + fmt(model, DRIVE_FIELDS)
+    text += "\n[actuator]\n" + fmt(act, ACTUATOR_FIELDS[act.name])
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def _check_inputs(model, vary, objective, band, freq, starts, max_field, x0):
+    check_cone_model(model)
+    if not isinstance(vary, dict) or not vary:
+        raise SweepError("vary must be a non-empty dict {name: (lower, upper)}")
+    mapping = resolve(model, list(vary))
+    if any(v == "freq" for v in mapping.values()):
+        raise SweepError("freq cannot be varied: give freq= or band=")
+    bounds = {}
+    for k, b in vary.items():
+        try:
+            lo, hi = (float(x) for x in b)
+        except (TypeError, ValueError):
+            raise SweepError(f"vary[{k!r}] must be a pair (lower, upper), got {b!r}") from None
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise SweepError(f"vary[{k!r}] = ({lo}, {hi}) must be finite (allowed range: "
+                             "finite lower < upper)")
+        if not lo < hi:
+            raise SweepError(f"vary[{k!r}] = ({lo:g}, {hi:g}): lower must be < upper")
+        bounds[k] = (lo, hi)
+    if not (isinstance(objective, str) and objective in OBJECTIVES) and not callable(objective):
+        raise SweepError(f"objective = {objective!r} must be one of {', '.join(OBJECTIVES)} "
+                         "or a callable of the steady_objectives dict")
+    if objective == "pmax":
+        if band is None:
+            raise SweepError("objective 'pmax' needs band=(f_lo, f_hi) in Hz")
+        check_band(band)
+    elif freq is None or not (math.isfinite(float(freq)) and float(freq) > 0):
+        raise SweepError(f"objective {objective!r} needs freq > 0 in Hz (allowed range "
+                         f"(0, inf)), got {freq!r}")
+    check_int("starts", starts, 1)
+    if isinstance(max_field, bool) or not (math.isfinite(float(max_field))
+                                           and float(max_field) > 0):
+        raise SweepError(f"max_field = {max_field!r} must be > 0 V/m (allowed range (0, inf))")
+    for k, v in (x0 or {}).items():
+        if k not in bounds:
+            raise SweepError(f"x0 names {k!r}, which is not in vary")
+        lo, hi = bounds[k]
+        if not (math.isfinite(float(v)) and lo <= float(v) <= hi):
+            raise SweepError(f"x0[{k!r}] = {v!r} is outside its bounds [{lo:g}, {hi:g}]")
+    return bounds
+
+
+def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, mass=None,
+             damping=None, band=None, freq=None, drive: str = "A", phase=None,
+             max_field: float = 80e6, starts: int = 8, seed: int = 0, x0: dict | None = None,
+             maxiter: int = 20, gtol: float = 1e-3, settings: Steady = DESIGN_STEADY,
+             grid: int = 8, refine: int = 2) -> OptimiseResult:
+    """Maximise steady-state power (or efficiency, or any objective) over bounded parameters.
+
+    **Arguments:**
+
+    - `model`: a cone :class:`~jaxdea.Model` (the start design).
+    - `vary`: ``{name: (lower, upper)}``: model parameter paths (:mod:`jaxdea.params`) or
+      ``"mass"``, ``"damping"``, with their bounds.
+    - `objective`: ``"pmax"`` (P_max over ``band``), ``"power"`` (P_out at ``freq``),
+      ``"efficiency"`` (at ``freq``), or a callable of the :func:`steady_objectives` dict
+      at ``freq`` returning a scalar (JAX operations) to maximise.
+    - `mass`, `damping`: payload M (kg) and c (N s/m).
+    - `band`: ``(f_lo, f_hi)`` Hz for ``"pmax"``; `freq`: Hz for the others.
+    - `drive`, `phase`: the drive case.
+    - `max_field`: largest nominal field at the static equilibrium, V/m.
+    - `starts`: number of starts (the first is ``x0`` or the model's values if inside the
+      bounds, the others a Latin hypercube from ``seed``).
+    - `maxiter`: most iterations; `gtol`: stop when the projected gradient in the unit box
+      is below ``gtol * |objective|``.
+    - `settings`, `grid`, `refine`: the periodic solve and the peak search.
+
+    **Returns:**
+
+    An :class:`OptimiseResult` (the best feasible design found).
+    """
+    bounds = _check_inputs(model, vary, objective, band, freq, starts, max_field, x0)
+    keys, full, pay = split_names(resolve(model, list(vary)))
+    lo = np.array([bounds[k][0] for k in keys])
+    hi = np.array([bounds[k][1] for k in keys])
+    n = len(keys)
+    rng = np.random.default_rng(seed)
+    u = (rng.permuted(np.tile(np.arange(starts), (n, 1)), axis=1).T
+         + rng.random((starts, n))) / starts
+    model_vals = [_current(model, k, mass, damping, full, pay, keys) for k in keys]
+    first = np.array([(x0 or {}).get(k, v) for k, v in zip(keys, model_vals)], float)
+    if np.all((lo <= first) & (first <= hi)):
+        u[0] = (first - lo) / (hi - lo)
+    kw = dict(mass=mass, damping=damping, drive=drive, phase=phase)
+    if objective == "pmax":
+        lo_f, hi_f = check_band(band)
+        build = make_builder(model, full, pay, freq=np.linspace(lo_f, hi_f, grid), shift=True,
+                         **kw)
+    else:
+        build = make_builder(model, full, pay, freq=np.array([float(freq)]), shift=False, **kw)
+
+    def fields(x):
+        return np.array([float(nominal_field(_design(model, keys, full, lo + xi * (hi - lo))))
+                         for xi in x])
+
+    def evaluate(x):
+        """Objective, gradient (unit box), peak f and status of the designs ``x``."""
+        theta = lo + x * (hi - lo)
+        if objective == "pmax":
+            r = peak_designs(build, np.concatenate([theta, np.zeros((len(x), 1))], 1),
+                             (lo_f, hi_f), grid=grid, refine=refine, settings=settings)
+            val, g, fpk, st = r["P_max"], r["grad"][:, :-1], r["f"], r["status"]
+        elif callable(objective):
+            val, g = [], []
+            for th in theta:
+                v, gr = jax.value_and_grad(lambda t: objective(_metrics(build, t, settings)))(
+                    jnp.asarray(th))
+                val.append(float(v))
+                g.append(np.asarray(gr))
+            val, g, fpk = np.array(val), np.array(g), None
+            st = np.where(np.isfinite(val), 0, 4)
+        else:
+            r = solve_designs(build, theta, settings=settings, jac=True)
+            i = 0 if objective == "power" else 2
+            val, g, fpk, st = r.values[:, 0, i], r.jac[:, 0, i, :], None, r.status[:, 0]
+        bad = (st != 0) | ~np.isfinite(val)
+        return np.where(bad, -np.inf, val), np.nan_to_num(g) * (hi - lo), fpk, bad
+
+    x = np.clip(u, 0.0, 1.0)
+    e = fields(x)
+    val, g, fpk, bad = evaluate(x)  # screening: every start in one batched call
+    start_val = float(val[0])
+    feasible = (e <= max_field) & ~bad
+    history = [val.copy()]
+    alpha = 0.1 / np.maximum(np.max(np.abs(g), axis=1), 1e-300)
+    done = ~feasible  # infeasible starts are dropped
+    limited = np.zeros(starts, bool)
+    for _ in range(int(maxiter)):
+        pg = _projected(x, g)
+        done |= np.max(np.abs(pg), axis=1) <= gtol * np.abs(val)
+        if done.all():
+            break
+        prop = x.copy()
+        for k in np.nonzero(~done)[0]:
+            a = alpha[k]
+            for _h in range(40):
+                prop[k] = np.clip(x[k] + a * g[k], 0.0, 1.0)
+                if fields(prop[k:k + 1])[0] <= max_field:
+                    break
+                a, limited[k] = 0.5 * a, True
+            alpha[k] = a
+        v2, g2, f2, b2 = evaluate(prop)
+        better = ~done & ~b2 & (v2 >= val)
+        s, yv = prop - x, -(g2 - g)
+        sy = np.sum(s * yv, axis=1)
+        bb = np.where(sy > 0, np.sum(s * s, axis=1) / np.where(sy > 0, sy, 1.0), 2 * alpha)
+        alpha = np.where(better, np.clip(bb, 1e-3 * alpha, 1e3 * alpha),
+                         np.where(done, alpha, 0.25 * alpha))
+        x = np.where(better[:, None], prop, x)
+        val, g = np.where(better, v2, val), np.where(better[:, None], g2, g)
+        fpk = None if fpk is None else np.where(better, f2, fpk)
+        done |= alpha * np.max(np.abs(g), axis=1) < 1e-7
+        history.append(val.copy())
+    e = fields(x)
+    ok = (e <= max_field) & np.isfinite(val)
+    if not ok.any():
+        raise JaxdeaError("no start gave a feasible design (orbit status 0 and nominal field "
+                          f"<= max_field = {max_field:g} V/m): widen the bounds or add starts")
+    k = int(np.argmax(np.where(ok, val, -np.inf)))
+    theta = lo + x[k] * (hi - lo)
+    best = _design(model, keys, full, theta)
+    active = [f"{name} at its {'lower' if x[k][i] <= 0 else 'upper'} bound "
+              f"{(lo if x[k][i] <= 0 else hi)[i]:g}"
+              for i, name in enumerate(keys) if x[k][i] <= 0 or x[k][i] >= 1]
+    if e[k] >= max_field * (1 - 1e-3):
+        active.append(f"nominal field at max_field ({e[k]:.4g} V/m)")
+    return OptimiseResult(
+        model=best, values=dict(zip(keys, map(float, theta))), objective=float(val[k]),
+        f_at_P_max=None if fpk is None else float(fpk[k]),
+        gradient=dict(zip(keys, map(float, g[k] / (hi - lo)))), active=active,
+        field=float(e[k]), start_objective=start_val, history=history)
+
+
+def _projected(x, g):
+    """The projected gradient (ascent) in the unit box."""
+    return np.where(((x <= 0) & (g < 0)) | ((x >= 1) & (g > 0)), 0.0, g)
+
+
+def _current(model, key, mass, damping, full, pay, keys):
+    if key in ("mass", "damping"):
+        return {"mass": mass, "damping": damping}[key] or 0.0
+    return float(list(get_params(model, [key]).values())[0])
+
+
+def _design(model, keys, full, theta):
+    """The model with the model parameters among ``keys`` set to ``theta``."""
+    return set_params(model, {k: float(t) for k, t in zip(keys, theta) if k not in
+                              ("mass", "damping")})
+
+
+def _metrics(build, theta, settings):
+    from ..engine.sensitivity import steady_metrics
+    out = steady_metrics(build, theta, settings)
+    return {k: v[0] for k, v in out.items()}

@@ -1,0 +1,133 @@
+"""Design study: implicit gradients at the periodic orbit against central differences,
+reverse = forward mode, P_max by the envelope theorem, optimise() and its input checks."""
+
+import jax
+import numpy as np
+import pytest
+
+import jaxdea
+from jaxdea.engine.sensitivity import solve_designs
+from jaxdea.studies.design import (
+    make_builder,
+    peak_designs,
+    resolve,
+    split_names,
+    steady_objectives,
+)
+from jaxdea.studies.optimise import nominal_field, optimise
+
+# parameters checked per config (>= 8 each) and the relative central-difference step
+COMMON = ["membrane.prestretch", "membrane.thickness", "membrane.relative_permittivity",
+          "membrane.electrode_resistance", "membrane.dielectric.mu_A", "membrane.dielectric.tau",
+          "voltage", "duty", "actuator.disk_mass", "mass", "damping"]
+OWN = {"scdea_ls": ["actuator.spring_stiffness", "actuator.deflection",
+                    "membrane.electrode_thickness"],
+       "dcdea_rr": ["actuator.rod_length", "membrane.inner_radius"],
+       "dcdea_ls": ["actuator.spring_stiffness", "actuator.deflection"]}
+H = 1e-5
+
+
+def _setup(model, names, freq=60.0, drive="A", phase=None):
+    keys, full, pay = split_names(resolve(model, names))
+    build = make_builder(model, full, pay, mass=None, damping=None, freq=np.array([freq]),
+                     drive=drive, phase=phase, shift=False)
+    base = dict(jaxdea.parameter_names(model))
+    theta = np.array([{"mass": 2e-3, "damping": 0.1}.get(k) or base[r]
+                      for k, r in zip(keys, full + pay)])
+    return keys, build, theta
+
+
+@pytest.mark.parametrize("name,drive,phase", [("scdea_ls", "A", None),
+                                              ("dcdea_rr", "both", 1.0),
+                                              ("dcdea_ls", "B", None)])
+def test_gradients_match_central_differences(models, name, drive, phase):
+    model = models[name]
+    keys, build, theta = _setup(model, COMMON + OWN[name], drive=drive, phase=phase)
+    n = theta.size
+    h = H * np.abs(theta)
+    designs = np.concatenate([theta[None], theta + np.diag(h), theta - np.diag(h)])
+    r = solve_designs(build, designs)  # one batched call: centre and every +-h
+    assert (r.status == 0).all()
+    for i, metric in ((0, "P_out"), (2, "efficiency")):
+        fd = (r.values[1:n + 1, 0, i] - r.values[n + 1:, 0, i]) / (2 * h)
+        g = r.jac[0, 0, i]
+        scale = np.abs(g) * np.abs(theta)  # sensitivity of the metric to a relative change
+        err = np.abs(fd - g) * np.abs(theta) / max(np.abs(r.values[0, 0, i]), 1e-300)
+        print(name, metric, "max rel FD error", err.max(), dict(zip(keys, err)))
+        assert err.max() < 1e-4, (metric, dict(zip(keys, err)), dict(zip(keys, scale)))
+
+
+def test_reverse_mode_equals_forward_mode(models):
+    model = models["scdea_ls"]
+    v = {"actuator.spring_stiffness": 600.0, "membrane.prestretch": 1.2, "mass": 2e-3}
+
+    def p_out(v):
+        return steady_objectives(model, v, damping=0.1, freq=60.0)["P_out"]
+
+    fwd = jax.jacfwd(p_out)(v)
+    rev = jax.grad(p_out)(v)
+    for k in v:
+        assert np.isclose(fwd[k], rev[k], rtol=1e-12, atol=0), k
+
+
+def test_pmax_gradient_by_envelope_theorem(models):
+    model = models["dcdea_ls"]
+    keys, full, pay = split_names(resolve(model, ["membrane.prestretch", "actuator.disk_mass",
+                                             "mass"]))
+    build = make_builder(model, full, pay, mass=None, damping=0.1,
+                     freq=np.linspace(20.0, 160.0, 8), drive="A", phase=None, shift=True)
+    theta = np.array([1.2, 2.26e-3, 2e-3, 0.0])
+    h = H * np.abs(theta[:3])
+    dirs = np.zeros((3, 4))
+    dirs[np.arange(3), np.arange(3)] = h
+    designs = np.concatenate([theta[None], theta + dirs, theta - dirs])
+    r = peak_designs(build, designs, (20.0, 160.0))
+    assert (r["status"] == 0).all()
+    assert 20.0 < r["f"][0] < 160.0  # an interior peak: dP/df = 0 there
+    fd = (r["P_max"][1:4] - r["P_max"][4:]) / (2 * h)
+    err = np.abs(fd - r["grad"][0, :3]) * theta[:3] / r["P_max"][0]
+    print("P_max max rel FD error", err.max())
+    assert err.max() < 1e-4, err
+
+
+def test_optimise_returns_a_stationary_feasible_design(models, tmp_path):
+    model = models["scdea_ls"]
+    vary = {"actuator.spring_stiffness": (100.0, 2000.0), "membrane.prestretch": (1.05, 1.3)}
+    res = optimise(model, vary, "power", mass=2e-3, damping=0.1, freq=60.0, starts=2,
+                   maxiter=25, gtol=1e-3)
+    assert res.field <= 80e6  # never a design above max_field
+    assert float(nominal_field(res.model)) <= 80e6
+    assert res.objective >= res.start_objective
+    lo = np.array([b[0] for b in vary.values()])
+    hi = np.array([b[1] for b in vary.values()])
+    x = (np.array(list(res.values.values())) - lo) / (hi - lo)
+    g = np.array(list(res.gradient.values())) * (hi - lo)
+    at = (x <= 0) | (x >= 1)
+    field_active = any("field" in a for a in res.active)
+    if not field_active:
+        pg = np.where((x <= 0) & (g < 0) | (x >= 1) & (g > 0), 0.0, g)
+        assert np.abs(pg).max() <= 1e-2 * res.objective, (res.values, res.gradient)
+    assert np.all((x[~at] > 0) & (x[~at] < 1))
+    back = jaxdea.load_config(res.to_toml(tmp_path / "opt.toml"))
+    for k, v in res.values.items():
+        assert np.isclose(float(jaxdea.parameter_names(back)[resolve(model, [k])[k]]), v)
+
+
+BAD = [
+    (dict(vary={"nonsense": (1.0, 2.0)}), "nonsense"),
+    (dict(vary={"actuator.spring_stiffness": (2000.0, 100.0)}), "lower must be < upper"),
+    (dict(vary={"actuator.spring_stiffness": (100.0, float("inf"))}), "finite"),
+    (dict(vary={"actuator.spring_stiffness": (100.0, 2000.0)}, band=(50.0, 10.0)), "f_lo"),
+    (dict(vary={"actuator.spring_stiffness": (100.0, 2000.0)}, starts=0), "starts"),
+    (dict(vary={"actuator.spring_stiffness": (100.0, 2000.0)}, x0={
+        "actuator.spring_stiffness": 5000.0}), "outside its bounds"),
+    (dict(vary={"actuator.spring_stiffness": (100.0, 2000.0)}, max_field=float("nan")),
+     "max_field"),
+]
+
+
+@pytest.mark.parametrize("kw,match", BAD)
+def test_bad_inputs_raise_sweep_error(models, kw, match):
+    kw = dict(dict(objective="pmax", mass=2e-3, damping=0.1, band=(10.0, 100.0)), **kw)
+    with pytest.raises(jaxdea.SweepError, match=match):
+        optimise(models["scdea_ls"], **kw)
