@@ -10,9 +10,34 @@ from pathlib import Path
 
 import numpy as np
 
+#: The most points one command-line range may hold: a guard against a typo (``1:100:1e-9``)
+#: that would allocate terabytes before any check; a larger grid is several runs.
+MAX_POINTS = 1_000_000
+
+
+def _grid(values: np.ndarray, text: str, name: str) -> np.ndarray:
+    """``values`` if they are finite and strictly increasing (distinct grid points at float64
+    precision); else ``ValueError`` naming the option."""
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{name} {text!r} overflows a float64: keep MIN, MAX and MAX - MIN "
+                         "within (-1e308, 1e308)")
+    if not np.all(np.diff(values) > 0):
+        raise ValueError(f"{name} {text!r} has points that are equal at float64 precision: "
+                         "widen MAX - MIN or use fewer points")
+    return values
+
 
 def parse_range(text: str, name: str = "--freq") -> np.ndarray:
-    """``MIN:MAX:STEP`` -> inclusive arithmetic range (``MAX`` included when on the grid)."""
+    """``MIN:MAX:STEP`` -> inclusive arithmetic range (``MAX`` included when on the grid).
+
+    Arguments:
+        text: the option's value, ``MIN:MAX:STEP`` (finite numbers, ``STEP > 0``, at most
+            :data:`MAX_POINTS` points).
+        name: the option, named in the error message.
+
+    Returns:
+        The finite, strictly increasing points (``ValueError`` naming ``name`` otherwise).
+    """
     parts = text.split(":")
     if len(parts) != 3:
         raise ValueError(f"{name} must be MIN:MAX:STEP, got {text!r}")
@@ -26,8 +51,18 @@ def parse_range(text: str, name: str = "--freq") -> np.ndarray:
         raise ValueError(f"{name} STEP must be > 0, got {step:g}")
     if hi < lo:
         raise ValueError(f"{name} is empty: MAX = {hi:g} < MIN = {lo:g}")
-    n = int(math.floor((hi - lo) / step + 1e-9)) + 1
-    return np.round(lo + step * np.arange(n), 12)
+    count = (hi - lo) / step + 1e-9  # inf when MAX - MIN overflows or STEP underflows
+    if not count < MAX_POINTS:
+        raise ValueError(f"{name} {text!r} has more than {MAX_POINTS} points (allowed range "
+                         f"[1, {MAX_POINTS}]): use a larger STEP")
+    n = int(math.floor(count)) + 1
+    values = lo + step * np.arange(n)
+    # round off float noise (0.1 * 3 -> 0.3): at 1e-12, or finer for a very small STEP; a
+    # value too large to round (x * 10**decimals overflows) is already exact enough
+    decimals = max(12, 9 - math.floor(math.log10(step)))
+    with np.errstate(all="ignore"):
+        rounded = np.round(values, decimals)
+    return _grid(np.where(np.isfinite(rounded), rounded, values), text, name)
 
 
 def _min_max_count(parts: list[str], text: str, name: str) -> tuple[float, float, int]:
@@ -40,6 +75,8 @@ def _min_max_count(parts: list[str], text: str, name: str) -> tuple[float, float
         raise ValueError(f"{name} values must be finite, got {text!r}")
     if n < 1:
         raise ValueError(f"{name} is empty: N = {n} must be >= 1")
+    if n > MAX_POINTS:
+        raise ValueError(f"{name} N = {n} is outside the allowed range [1, {MAX_POINTS}]")
     return lo, hi, n
 
 
@@ -58,12 +95,12 @@ def parse_points(text: str, name: str) -> np.ndarray:
         raise ValueError(f"{name}: N = 1 needs MIN = MAX, got {text!r}")
     if n > 1 and hi == lo:
         raise ValueError(f"{name}: MIN = MAX = {lo:g} with N = {n} repeats one value")
-    if scale == "log":
-        if lo <= 0:
-            raise ValueError(f"{name} with log spacing needs MIN > 0, got {lo:g} "
-                             "(use :lin for a range that starts at 0)")
-        return np.geomspace(lo, hi, n)
-    return np.linspace(lo, hi, n)
+    if scale == "log" and lo <= 0:
+        raise ValueError(f"{name} with log spacing needs MIN > 0, got {lo:g} "
+                         "(use :lin for a range that starts at 0)")
+    with np.errstate(all="ignore"):  # an overflow is reported by _grid, as one line
+        values = np.geomspace(lo, hi, n) if scale == "log" else np.linspace(lo, hi, n)
+    return _grid(values, text, name)
 
 
 def parse_phases(text: str, name: str = "--phase") -> np.ndarray:
@@ -74,7 +111,8 @@ def parse_phases(text: str, name: str = "--phase") -> np.ndarray:
     lo, hi, n = _min_max_count(parts, text, name)
     if hi <= lo:
         raise ValueError(f"{name} is empty or inverted: MAX = {hi:g} <= MIN = {lo:g}")
-    return lo + (hi - lo) * np.arange(n) / n
+    with np.errstate(all="ignore"):
+        return _grid(lo + (hi - lo) * np.arange(n) / n, text, name)
 
 
 def write_dataset(ds, out: Path) -> None:

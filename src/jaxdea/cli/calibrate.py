@@ -20,6 +20,8 @@ def parse_bounds(text: str | None) -> dict[str, tuple[float, float]]:
         lo, sep2, hi = rng.partition(":")
         if not (sep and sep2 and name.strip()):
             raise ValueError(f"--bounds must be NAME=LO:HI[,NAME=LO:HI...], got {item!r}")
+        if name.strip() in out:
+            raise ValueError(f"--bounds gives {name.strip()} twice; give each parameter once")
         try:
             out[name.strip()] = (float(lo), float(hi))
         except ValueError:
@@ -45,6 +47,8 @@ def _calibrate(args) -> int:
     if out.suffix != ".toml":
         raise ValueError(f"--out must end in .toml, got {out}")
     check_png(args.plot)
+    if args.maxiter is not None and args.maxiter < 1:
+        raise ValueError(f"--maxiter = {args.maxiter} is outside the allowed range [1, inf)")
     model = jaxdea.load_config(args.config)
     data = load_data(args.data)
     fit = [n.strip() for n in args.fit.split(",") if n.strip()]
@@ -62,7 +66,7 @@ def _calibrate(args) -> int:
     if isinstance(data, FrequencyResponse) and isinstance(model, Model):
         predict = functools.partial(frequency_response, cycles=args.cycles,
                                     average=args.average)
-    de_options = {"popsize": args.popsize} if args.popsize else None
+    de_options = {"popsize": args.popsize} if args.popsize is not None else None
     print(f"jaxdea calibrate: {getattr(model, 'name', type(model).__name__)}, "
           f"{type(data).__name__} {args.data}, fit {', '.join(start)}, method {args.method}",
           flush=True)

@@ -4,12 +4,18 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
+
+from jaxdea._checks import check_unit_interval
 
 from .args import check_png, netcdf_out, write_dataset
 
 SIGNALS = ("multisine", "vp1", "vp2", "vp3", "vp4", "sine")
+#: The most output samples (``--cycles`` x ``--points``) one run may ask for (about 80 MB a
+#: channel): a guard against a typo that would allocate gigabytes before any check.
+MAX_SAMPLES = 10_000_000
 
 
 def _floats(text: str | None, name: str) -> list[float] | None:
@@ -25,10 +31,16 @@ def make_signal(kind: str, *, peak: float | None, period: float | None,
                 amplitudes: list[float] | None = None, freqs: list[float] | None = None):
     """Drive from CLI options. multisine: ``amplitudes``/``freqs`` (default paper 002's
     a_i = 5.5 + 0.5 i kV, f_i = 0.2 i Hz); vp1..vp4: ``peak`` (V) and ``period`` (s)
-    (default 4.5 kV, 10 s); sine: ``peak`` sin(2 pi t / ``period``) (default 1 kV, 1 s)."""
+    (default 4.5 kV, 10 s); sine: ``peak`` sin(2 pi t / ``period``) (default 1 kV, 1 s).
+    ``peak`` must be finite and ``period`` finite and > 0 (``ValueError`` otherwise)."""
     import jax.numpy as jnp
 
     from jaxdea.signals import MultiSine, Sine, voltage_pattern
+
+    if peak is not None and not math.isfinite(peak):
+        raise ValueError(f"--peak must be a finite voltage, got {peak!r}")
+    if period is not None and not (math.isfinite(period) and period > 0):
+        raise ValueError(f"--period = {period!r} s is outside the allowed range (0, inf)")
 
     if kind == "multisine":
         a = amplitudes if amplitudes is not None else [6000.0, 6500.0, 7000.0, 7500.0, 8000.0]
@@ -38,10 +50,7 @@ def make_signal(kind: str, *, peak: float | None, period: float | None,
         return voltage_pattern(kind, 4500.0 if peak is None else peak,
                                10.0 if period is None else period)
     if kind == "sine":
-        per = 1.0 if period is None else period
-        if per <= 0:
-            raise ValueError(f"--period must be > 0 s, got {per:g}")
-        return Sine(1000.0 if peak is None else peak, 1.0 / per)
+        return Sine(1000.0 if peak is None else peak, 1.0 / (1.0 if period is None else period))
     raise ValueError(f"--signal must be one of {', '.join(SIGNALS)}, got {kind!r}")
 
 
@@ -56,6 +65,10 @@ def _simulate(args) -> int:
         raise ValueError(f"--cycles must be >= 1, got {args.cycles}")
     if args.points < 8:
         raise ValueError(f"--points must be >= 8 per cycle, got {args.points}")
+    if args.cycles * args.points > MAX_SAMPLES:
+        raise ValueError(f"--cycles x --points = {args.cycles * args.points} output samples is "
+                         f"outside the allowed range [8, {MAX_SAMPLES}]")
+    check_unit_interval("--rtol", args.rtol)
     model = jaxdea.load_config(args.config)
     if not hasattr(model, "vector_field") or not hasattr(model, "observables"):
         raise ValueError(f"{args.config}: 'simulate' needs a viscoelastic model "

@@ -32,7 +32,10 @@ class Field:
     def check(self, name: str, value: Any) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{name} must be a number in {self.describe()}, got {value!r}")
-        v = float(value)
+        try:
+            v = float(value)
+        except OverflowError:  # an integer beyond float64 (|value| > 1.8e308)
+            v = math.inf
         ok = math.isfinite(v)
         ok &= v > self.lo if self.lo_open else v >= self.lo
         ok &= v < self.hi if self.hi_open else v <= self.hi
@@ -45,11 +48,19 @@ class Field:
 POS = Field(0.0, math.inf, lo_open=True)
 
 
+def table_of(value: Any, name: str) -> dict:
+    """A copy of the TOML table ``value`` (a dict); ``ConfigError`` naming ``[name]`` if it is
+    a number, string, list or anything else."""
+    if not isinstance(value, dict):
+        raise ConfigError(f"[{name}] must be a table of key = value lines, got {value!r}")
+    return dict(value)
+
+
 def section(table: Any, name: str, fields: dict[str, Field]) -> dict[str, Array]:
     """Validated ``{key: float64 array}`` of a flat TOML table with exactly ``fields``."""
     if not isinstance(table, dict):
         raise ConfigError(f"[{name}] must be a table")
-    unknown = sorted(set(table) - set(fields))
+    unknown = sorted(map(str, set(table) - set(fields)))
     if unknown:
         raise ConfigError(
             f"unknown key(s) in [{name}]: {', '.join(unknown)}; allowed: {', '.join(fields)}"
@@ -68,7 +79,7 @@ def subtables(table: Any, name: str, sub: tuple[str, ...]) -> tuple[dict, dict]:
         raise ConfigError(f"[{name}] must be a table")
     flat = {k: v for k, v in table.items() if not isinstance(v, dict)}
     nested = {k: v for k, v in table.items() if isinstance(v, dict)}
-    unknown = sorted(set(nested) - set(sub))
+    unknown = sorted(map(str, set(nested) - set(sub)))
     if unknown:
         raise ConfigError(f"unknown table(s) in [{name}]: {', '.join(unknown)}")
     missing = [k for k in sub if k not in nested]
@@ -98,7 +109,7 @@ def check_top(cfg: dict, kind: str, required: tuple[str, ...],
     """The top level of a config of family ``kind``: exactly ``model``, the ``required``
     tables and any of ``optional``."""
     allowed = {"model", *required, *optional}
-    unknown = sorted(set(cfg) - allowed)
+    unknown = sorted(map(str, set(cfg) - allowed))
     if unknown:
         raise ConfigError(f"unknown top-level key(s) for model {kind!r}: {', '.join(unknown)}; "
                           f"allowed: {', '.join(sorted(allowed))}")

@@ -8,10 +8,16 @@ from typing import Any
 import jax.numpy as jnp
 
 from .._checks import ConfigError
-from ..models.rotary import (FIELD_MODES, OK, ROTARY_STATUS, OgdenTypeDE, RotaryDCDEA,
-                             check_geometry, equilibrium)
-from .fields import Field, check_top, number_list, section
-
+from ..models.rotary import (
+    FIELD_MODES,
+    OK,
+    ROTARY_STATUS,
+    OgdenTypeDE,
+    RotaryDCDEA,
+    check_geometry,
+    equilibrium,
+)
+from .fields import Field, check_top, number_list, section, table_of
 
 GEOMETRY_FIELDS = {
     "inner_radius": Field(0.0, math.inf, lo_open=True, unit="m"),
@@ -50,7 +56,7 @@ def rotary_from_config(cfg: dict[str, Any]) -> RotaryDCDEA:
         raise ConfigError(f"field = {field!r} is not one of {', '.join(FIELD_MODES)}")
 
     geo = section(cfg["geometry"], "geometry", GEOMETRY_FIELDS)
-    mat_tab = dict(cfg["material"])
+    mat_tab = table_of(cfg["material"], "material")
     lists = {k: number_list(mat_tab, "material", k, fld) for k, fld in MATERIAL_LISTS.items()}
     if not len({int(v.shape[0]) for v in lists.values()}) == 1:
         raise ConfigError("material.alpha, material.beta and material.gamma must have the same "
@@ -61,7 +67,7 @@ def rotary_from_config(cfg: dict[str, Any]) -> RotaryDCDEA:
     mat = section({k: v for k, v in mat_tab.items() if k not in MATERIAL_LISTS}, "material",
                    MATERIAL_SCALARS)
     spacer = section(cfg["spacer"], "spacer", SPACER_FIELDS)
-    drv_tab = dict(cfg["drive"])
+    drv_tab = table_of(cfg["drive"], "drive")
     pattern = number_list(drv_tab, "drive", "pattern", PATTERN_FIELD, n=4)
     drv = section({k: v for k, v in drv_tab.items() if k != "pattern"}, "drive", DRIVE_SCALARS)
 

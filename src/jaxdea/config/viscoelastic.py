@@ -13,8 +13,8 @@ Layouts (all SI; see ``configs/gu2017_*.toml``, ``configs/huang2020_mass_cone.to
                 load = "equilibrium" | "weight"
     [material]  mu0, J0, mu, J, tau          [material] mu1, J1, mu, J, eta
 
-Every number is checked with :class:`jaxdea.config.fields.Field` (errors name ``section.key`` and the
-allowed range); the unit arrays must have equal, non-zero lengths.
+Every number is checked with :class:`jaxdea.config.fields.Field` (errors name ``section.key``
+and the allowed range); the unit arrays must have equal, non-zero lengths.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from .._checks import ConfigError
 from ..materials import EPS0, GentKelvinChain, GentSpringDashpot
 from ..models.mass_cone import MassCone, with_load
 from ..models.planar import PlanarDEA
-from .fields import Field, check_top, number_list, section
+from .fields import Field, check_top, number_list, section, table_of
 
 PLANAR_GEOMETRY = {
     "L1": Field(0.0, math.inf, lo_open=True, unit="m"),
@@ -65,7 +65,7 @@ KELVIN_ARRAYS = {"mu": Field(0.0, math.inf, lo_open=True, unit="Pa"),
 def _material(table: Any, scalars: dict, arrays: dict) -> dict:
     if not isinstance(table, dict):
         raise ConfigError("[material] must be a table")
-    unknown = sorted(set(table) - set(scalars) - set(arrays))
+    unknown = sorted(map(str, set(table) - set(scalars) - set(arrays)))
     if unknown:
         raise ConfigError(f"unknown key(s) in [material]: {', '.join(unknown)}; allowed: "
                           f"{', '.join([*scalars, *arrays])}")
@@ -97,9 +97,7 @@ def mass_cone_from_config(cfg: dict) -> MassCone:
     """Validated :class:`~jaxdea.models.mass_cone.MassCone` from a parsed config."""
     kind = cfg.get("model")
     check_top(cfg, kind, ("geometry", "material"))
-    table = dict(cfg["geometry"]) if isinstance(cfg["geometry"], dict) else cfg["geometry"]
-    if not isinstance(table, dict):
-        raise ConfigError("[geometry] must be a table")
+    table = table_of(cfg["geometry"], "geometry")
     load = table.pop("load", None)
     if load not in LOADS:
         raise ConfigError(f"geometry.load must be one of {', '.join(map(repr, LOADS))}, "
