@@ -63,7 +63,9 @@ def _settle(actuator, loadings, *, warmup, tol, control, lanes, driven):
 
 
 def _shoot(actuator, loadings, y, active, *, control, lanes, driven):
-    """One period from ``y`` for the ``active`` cells, with the Newton step of each."""
+    """One period from ``y`` for the ``active`` cells: its metrics, the Jacobian ``J`` of the
+    one-period map and the gap ``Phi_T(y) - y`` of each cell (the Newton step is solved on the
+    host, :func:`newton_step`)."""
     flat = flatten_dynamical(y)
     d = flat.shape[-1]
 
@@ -76,12 +78,32 @@ def _shoot(actuator, loadings, y, active, *, control, lanes, driven):
         return out, (out, res)
 
     jac, (out, res) = jax.jacfwd(period_map, has_aux=True)(jnp.zeros(d, flat.dtype))
-    eye = jnp.eye(d, dtype=flat.dtype)
-    safe = jnp.where(active[:, None, None], jac - eye, -eye)  # inactive cells: no step
-    step = -jax.vmap(jnp.linalg.solve)(safe, out - flat)
-    step = jnp.where(active[:, None], step, 0.0)
-    size = jax.vmap(periodicity_residual)(with_dynamical(y, flat + step), y)
-    return res, step, size
+    return res, jac, out - flat
+
+
+def newton_step(jac: np.ndarray, gap: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """The Newton step ``-(J - I)^-1 (Phi_T(y) - y)`` of every active cell (0 elsewhere).
+
+    Solved on the host with numpy, never inside the sharded device program: a batched
+    ``jnp.linalg.solve`` there is a LAPACK call that splits its batch over XLA's intra-op
+    thread pool from a pool thread, and with one device per core every pool thread ends up
+    waiting for the others (a deadlock seen on a 480-cell periodic map over 2 devices).
+
+    **Arguments:**
+
+    - `jac`: ``(n, d, d)`` Jacobians of the one-period map.
+    - `gap`: ``(n, d)`` gaps ``Phi_T(y) - y``.
+    - `active`: ``(n,)`` bool, the cells that take a step.
+
+    **Returns:**
+
+    ``(n, d)`` steps.
+    """
+    d = gap.shape[-1]
+    eye = np.eye(d, dtype=gap.dtype)
+    safe = np.where(active[:, None, None], jac - eye, -eye)  # inactive cells: no step
+    step = -np.linalg.solve(safe, gap[..., None])[..., 0]
+    return np.where(active[:, None], step, 0.0)
 
 
 #: Lane pool of the shooting stage. Its lanes carry the d forward-mode tangents of
@@ -129,9 +151,11 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     for _ in range(int(newton)):
         if not pending.any():
             break
-        r, step, size = to_host(shoot(actuator, loadings, y, pending, control=control,
-                                      lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
-                                      driven=driven))
+        r, jac, gap = to_host(shoot(actuator, loadings, y, pending, control=control,
+                                    lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
+                                    driven=driven))
+        step = newton_step(np.asarray(jac), np.asarray(gap), pending)
+        size = np.asarray(_step_size(y, step))
         rs = {k: np.asarray(getattr(r, k)) for k in out}
         for k in out:
             if k in ("steps", "cycles_run"):
@@ -139,7 +163,6 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
             elif k != "status":
                 out[k] = np.where(pending, rs[k], out[k])
         ok = rs["status"] == 0
-        size = np.asarray(size)
         converged = pending & ok & (size < tol)
         failed = pending & ~ok
         out["status"] = np.where(failed, rs["status"], np.where(converged, 0, out["status"]))
@@ -149,6 +172,13 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
                                                                       0.0)))
     return CycleMetrics(final_state=jax.tree_util.tree_map(jnp.asarray, final),
                         **{k: jnp.asarray(v) for k, v in out.items()})
+
+
+@eqx.filter_jit
+def _step_size(y: ConeState, step: jax.Array) -> jax.Array:
+    """Periodicity residual between ``y`` and ``y + step`` per cell (one device)."""
+    return jax.vmap(periodicity_residual)(
+        with_dynamical(y, flatten_dynamical(y) + step), y)
 
 
 _SETTLE = eqx.filter_jit(_settle)
