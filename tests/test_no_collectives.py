@@ -63,3 +63,9 @@ def test_sharded_runs_compile_no_collective(tmp_path):
     found = {name: sorted(set(COLLECTIVE.findall(t))) for name, t in texts.items()}
     found = {name: ops for name, ops in found.items() if ops}
     assert not found, f"collectives in compiled modules: {found}"
+    # No LAPACK call in a program that runs on both devices: a batched one splits its batch
+    # over XLA's intra-op pool from a pool thread, and with one device per core every pool
+    # thread waits for the others (the periodic map deadlock, engine.periodic.newton_step).
+    lapack = [name for name, t in texts.items()
+              if "num_partitions=2" in t and re.search(r"lapack_\w+", t)]
+    assert not lapack, f"LAPACK calls in sharded modules: {lapack}"
