@@ -23,6 +23,8 @@ CONFIG = str(ROOT / "configs" / "dcdea_ls.toml")
 SRC = str(ROOT / "src")
 COLLECTIVE = re.compile(r"\b(all-reduce|all-gather|all-to-all|collective-permute|"
                         r"reduce-scatter)")
+#: A batched LU factorisation: a getrf whose result has a leading batch axis.
+BATCHED_LU = re.compile(r"= \(f64\[\d+,\d+,\d+\][^\n]*lapack_dgetrf")
 
 SCRIPT = textwrap.dedent(f"""
     import jax
@@ -63,9 +65,10 @@ def test_sharded_runs_compile_no_collective(tmp_path):
     found = {name: sorted(set(COLLECTIVE.findall(t))) for name, t in texts.items()}
     found = {name: ops for name, ops in found.items() if ops}
     assert not found, f"collectives in compiled modules: {found}"
-    # No LAPACK call in a program that runs on both devices: a batched one splits its batch
-    # over XLA's intra-op pool from a pool thread, and with one device per core every pool
-    # thread waits for the others (the periodic map deadlock, engine.periodic.newton_step).
+    # No batched LAPACK call in a program that runs on both devices: it splits its batch over
+    # XLA's intra-op pool from a pool thread, and with one device per core every pool thread
+    # waits for the others (the periodic map deadlock, engine.periodic.newton_step). The
+    # unbatched 2x2 solve of the static equilibrium runs inline and is harmless.
     lapack = [name for name, t in texts.items()
-              if "num_partitions=2" in t and re.search(r"lapack_\w+", t)]
-    assert not lapack, f"LAPACK calls in sharded modules: {lapack}"
+              if "num_partitions=2" in t and BATCHED_LU.search(t)]
+    assert not lapack, f"batched LAPACK calls in sharded modules: {lapack}"
