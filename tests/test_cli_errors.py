@@ -92,3 +92,16 @@ def test_version_and_defaults_in_help(capsys):
         main(["sweep", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "(default: 100)" in text and "membrane A only" in text
+
+
+def test_plot_of_a_sweep_file_or_a_truncated_map(tmp_path, capsys):
+    sweep_nc = tmp_path / "s.nc"
+    assert main([*SWEEP, "--out", str(sweep_nc)]) == 0
+    capsys.readouterr()
+    _fails(capsys, ["plot", str(sweep_nc), "--kind", "pmax", "--out", str(tmp_path / "p.png")],
+           r"s\.nc is a frequency sweep")
+    cut = tmp_path / "cut.nc"
+    cut.write_bytes(sweep_nc.read_bytes()[:200])
+    _fails(capsys, ["plot", str(cut), "--kind", "pmax", "--out", str(tmp_path / "p.png")],
+           r"cut\.nc is not a readable power map")
+    assert not (tmp_path / "p.png").exists()

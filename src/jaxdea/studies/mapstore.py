@@ -250,14 +250,35 @@ def write_store(ds: xr.Dataset, store: Path) -> None:
 
 
 def open_map(path: str | os.PathLike) -> xr.Dataset:
-    """Read a power-map store (.zarr or .nc) fully into memory."""
+    """Read a power-map store (.zarr or .nc) fully into memory.
+
+    **Arguments:**
+
+    - `path`: the store that :func:`jaxdea.powermap` (or ``jaxdea powermap --out``) wrote.
+
+    **Returns:**
+
+    The map as an ``xarray.Dataset``; :class:`~jaxdea.SweepError` (one line naming the file)
+    when it is missing, unreadable, truncated, or not a map (e.g. a sweep file).
+    """
     path = Path(path)
     if path.suffix not in SUFFIXES:
         raise SweepError(f"map must be a .zarr or .nc store, got {str(path)!r}")
     if not path.exists():
         raise SweepError(f"map not found: {path}")
-    if path.suffix == ".nc":
-        with xr.open_dataset(path, engine="h5netcdf") as ds:
-            return ds.load()
-    with xr.open_zarr(path, consolidated=False) as ds:
-        return ds.load()
+    try:
+        if path.suffix == ".nc":
+            with xr.open_dataset(path, engine="h5netcdf") as ds:
+                ds = ds.load()
+        else:
+            with xr.open_zarr(path, consolidated=False) as ds:
+                ds = ds.load()
+    except Exception as exc:  # noqa: BLE001 - truncated, foreign or unreadable: one line
+        raise SweepError(f"{path} is not a readable power map ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
+    missing = [k for k in ("M", "c", "f") if k not in ds.dims]
+    if missing or "P_out" not in ds:
+        what = "a frequency sweep (jaxdea sweep --plot draws it)" if set(ds.dims) == {"f"} \
+            else f"no power map (dims {sorted(map(str, ds.dims))})"
+        raise SweepError(f"{path} is {what}: a map has dims M, c, f and P_out")
+    return ds
