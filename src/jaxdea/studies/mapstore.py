@@ -7,6 +7,11 @@ holds ``manifest.json`` with a hash of every setting that determines the result;
 only reuses chunks whose manifest hash matches its own, so parts of a different run are never
 mixed in. When all chunks are done the Dataset is written to the final store (NetCDF or Zarr,
 by suffix), again via a temp name renamed into place, and the parts folder is removed.
+
+The folder is safe to share (cluster workers write their parts into it, :mod:`.distributed`):
+every part records its chunk index, its cell range and a SHA-256 of its arrays, and a part that
+is unreadable, truncated, empty, of another run or of another chunk is recomputed with a
+:class:`PartWarning` naming the file, never mixed in silently.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import hashlib
 import json
 import os
 import shutil
+import warnings
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -136,6 +142,32 @@ def _our_temp(name: str) -> bool:
     return name.startswith(".") and name.endswith(".tmp")
 
 
+def previous_chunk_cells(store: Path) -> int | None:
+    """The chunk size recorded in ``<store>.parts/manifest.json`` (None: no readable one), so
+    that a resumed run keeps the interrupted run's chunks whatever its device or worker
+    count."""
+    try:
+        old = json.loads((store.with_name(store.name + ".parts") / MANIFEST).read_text())
+        return int(old["settings"]["chunk_cells"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+class PartWarning(UserWarning):
+    """A chunk part of an interrupted power map is damaged or not this chunk's: it is
+    recomputed (the message names the file)."""
+
+
+def arrays_sha256(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 over the names, dtypes, shapes and bytes of ``arrays`` (in name order)."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 class Parts:
     """The ``<store>.parts`` folder of one run: manifest plus one ``.npz`` per finished chunk."""
 
@@ -194,21 +226,52 @@ class Parts:
     def _finished(self) -> set[int]:
         return {i for i in range(self.n_chunks) if self.path(i).exists()}
 
-    def save(self, i: int, arrays: dict[str, np.ndarray]) -> None:
-        """Write chunk ``i`` atomically (with the run hash, checked on load)."""
+    def save(self, i: int, arrays: dict[str, np.ndarray],
+             cells: tuple[int, int] | None = None) -> str:
+        """Write chunk ``i`` (flat cells ``cells = (lo, hi)``) atomically, with the run hash,
+        the chunk index, the cell range and the SHA-256 of the arrays (all checked on load);
+        return that SHA-256."""
+        digest = arrays_sha256(arrays)
+        lo_hi = np.array(cells if cells is not None else (-1, -1), dtype=np.int64)
         _atomic_write_bytes(self.path(i), lambda fh: np.savez(
-            fh, __hash__=np.array(self.hash), **arrays))
+            fh, __hash__=np.array(self.hash), __chunk__=np.array(i, dtype=np.int64),
+            __cells__=lo_hi, __sha256__=np.array(digest), **arrays))
+        return digest
 
-    def load(self, i: int, n: int, names) -> dict[str, np.ndarray] | None:
-        """Chunk ``i`` (``n`` cells), or None when the file is unreadable or not this run's."""
+    def load(self, i: int, n: int, names, cells: tuple[int, int] | None = None,
+             sha256: str | None = None) -> dict[str, np.ndarray] | None:
+        """Chunk ``i`` (``n`` cells, ``cells = (lo, hi)`` when given), or None, with a
+        :class:`PartWarning` naming the file, when the part is unreadable (truncated, empty,
+        corrupt), of another run or chunk, or its arrays fail their SHA-256 (or differ from
+        ``sha256``, a worker's receipt)."""
+        path = self.path(i)
+        why = None
         try:
-            with np.load(self.path(i)) as z:
-                if str(z["__hash__"]) != self.hash:
-                    return None
-                out = {k: z[k] for k in names}
-        except (OSError, KeyError, ValueError):
-            return None
-        return out if all(v.shape == (n,) for v in out.values()) else None
+            with np.load(path) as z:
+                keys = set(z.files)
+                if not {"__hash__", "__chunk__", "__cells__", "__sha256__"} <= keys:
+                    why = "has no chunk index or checksum (an older jaxdea's part, or not a part)"
+                elif str(z["__hash__"]) != self.hash:
+                    why = "belongs to a different run (its settings hash differs)"
+                elif int(z["__chunk__"]) != i:
+                    why = f"holds chunk {int(z['__chunk__'])}, not chunk {i}"
+                elif cells is not None and tuple(int(c) for c in z["__cells__"]) != tuple(cells):
+                    lo, hi = (int(c) for c in z["__cells__"])
+                    why = f"holds cells {lo}-{hi}, not {cells[0]}-{cells[1]}"
+                else:
+                    out = {k: z[k] for k in names}
+                    digest = str(z["__sha256__"])
+                    if arrays_sha256(out) != digest or (sha256 is not None and digest != sha256):
+                        why = "fails its SHA-256 checksum (corrupt)"
+                    elif not all(v.shape == (n,) for v in out.values()):
+                        why = f"does not hold {n} cells"
+        except Exception as exc:  # noqa: BLE001 - BadZipFile, EOFError, zlib.error, ...
+            why = f"is unreadable ({type(exc).__name__}: {exc})"
+        if why is None:
+            return out
+        warnings.warn(f"chunk part {path} {why}: recomputing chunk {i}", PartWarning,
+                      stacklevel=2)
+        return None
 
     def remove(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)
