@@ -48,12 +48,14 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _one_line(show):
-    """``warnings.showwarning`` that prints jaxdea's :class:`~jaxdea.FieldWarning` as one
-    line on stderr (other warnings as ``show`` does)."""
+    """``warnings.showwarning`` that prints jaxdea's :class:`~jaxdea.FieldWarning` and
+    :class:`~jaxdea.studies.mapstore.PartWarning` as one line on stderr (other warnings as
+    ``show`` does)."""
     from jaxdea._checks import FieldWarning
+    from jaxdea.studies.mapstore import PartWarning
 
     def showwarning(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, FieldWarning):
+        if issubclass(category, (FieldWarning, PartWarning)):
             print(f"jaxdea: warning: {message}", file=sys.stderr, flush=True)
         else:
             show(message, category, filename, lineno, file, line)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 
 import numpy as np
@@ -64,6 +65,11 @@ def _powermap(args) -> int:
     from jaxdea.studies.mapstore import check_store_path
 
     out = check_writable(check_store_path(args.out), "--out", directory_ok=True)
+    if args.workers is not None and args.scheduler is not None:
+        raise ValueError("--workers N starts a local cluster, --scheduler ADDRESS uses an "
+                         "existing one: give one of them")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {args.workers}")
     mass = parse_points(args.mass, "--mass")
     damping = parse_points(args.damping, "--damping")
     freq = parse_range(args.freq, "--freq")
@@ -77,9 +83,12 @@ def _powermap(args) -> int:
           + (f" x {phase.size} phase" if phase is not None else "")
           + f" = {n} cells, {args.cycles} cycles (average last {args.average}), "
           + (f"{args.direction} continuation, " if args.protocol == "continuation" else "")
-          + f"{len(jax.devices())} device(s)", flush=True)
+          + (f"{len(jax.devices())} device(s)" if args.workers is None and args.scheduler is None
+             else f"Dask cluster {args.scheduler or f'of {args.workers} local worker(s)'}"),
+          flush=True)
     try:
-        ds = _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out)
+        with _cluster_client(args) as client:
+            ds = _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client)
     except KeyboardInterrupt:
         print(f"\njaxdea powermap: interrupted. Finished chunks are kept in {out}.parts; "
               "to go on from them, run the same command with --resume:\n  "
@@ -91,13 +100,31 @@ def _powermap(args) -> int:
     return _summarise_map(ds, out, args.plot)
 
 
-def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out):
+@contextlib.contextmanager
+def _cluster_client(args):
+    """The Dask client of ``--scheduler`` / ``--workers`` (None: neither), closed on exit."""
+    if args.workers is None and args.scheduler is None:
+        yield None
+        return
+    from distributed import Client, LocalCluster
+
+    if args.scheduler is not None:
+        with Client(args.scheduler, timeout="30s") as client:
+            yield client
+        return
+    # one single-threaded process per worker: each has its own JAX device (see cluster.md)
+    with LocalCluster(n_workers=args.workers, processes=True, threads_per_worker=1,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        yield client
+
+
+def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client=None):
     return jaxdea.powermap(model, mass=mass, damping=damping, freq=freq, phase=phase,
                            drive=args.drive, protocol=args.protocol, cycles=args.cycles,
                            average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
                            direction=args.direction, tol=args.tol, early_exit=args.early_exit,
                            chunk_cells=args.chunk, store=out, resume=args.resume,
-                           progress=not args.no_progress)
+                           progress=not args.no_progress, client=client)
 
 
 def _print_not_steady(ds) -> None:
@@ -193,11 +220,16 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
     protocol_args(m)
     m.add_argument("--chunk", type=int, help="cells per compiled call (default: equal chunks "
-                   "of at most 4096 cells per device)")
+                   "of at most 4096 cells per device; on a Dask cluster ~4 chunks per worker, "
+                   "256-4096 cells)")
     m.add_argument("--out", required=True, help="output store: .zarr (Zarr) or .nc (NetCDF)")
     m.add_argument("--resume", action="store_true",
                    help="continue an interrupted run of the same settings (reuse its chunks)")
     m.add_argument("--plot", help="optional PNG of P_max over M x c (paper 000 Fig 7 style)")
+    m.add_argument("--workers", type=int, help="run the chunks on a local Dask cluster of N "
+                   "single-threaded worker processes (one JAX device each; N = cores)")
+    m.add_argument("--scheduler", help="run the chunks on an existing Dask cluster: its "
+                   "scheduler address, e.g. tcp://10.0.0.5:8786 (workers must see --out)")
     m.add_argument("--no-progress", action="store_true", help="no progress bar")
     m.set_defaults(func=_powermap)
 

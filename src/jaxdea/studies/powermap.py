@@ -16,6 +16,10 @@ device slices hold whole chains), ``periodic`` (periodic steady state, :mod:`jax
 With ``store`` every finished chunk goes to disk at once (see :mod:`jaxdea.mapstore`), so a
 killed run restarted with ``resume=True`` recomputes only the missing chunks and writes a store
 identical to an uninterrupted run.
+
+With ``client`` (a ``dask.distributed.Client``) the chunks run as tasks on the cluster's worker
+processes, one JAX device each, and the workers write the parts (:mod:`.distributed`,
+``docs/cluster.md``).
 """
 
 from __future__ import annotations
@@ -29,7 +33,6 @@ from types import SimpleNamespace
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import xarray as xr
 from tqdm.auto import tqdm
@@ -43,22 +46,19 @@ from .._checks import (
     check_unit_interval,
     finite_array,
 )
-from ..engine.batch import (
-    DIRECTIONS,
-    EARLY_EXIT,
-    PROTOCOLS,
-    chain_heads,
-    chain_successors,
-    default_lanes,
-    driven_membranes,
-    run_cells,
-    run_from_rest,
-)
+from ..engine.batch import DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors
 from ..engine.metrics import STATUS
 from ..engine.protocols import Protocol, as_keywords
-from ..engine.sharding import cell_sharded
 from ..engine.step_control import StepControl, check_control
-from ..models.cone import Loading, Model
+from ..models.cone import Model
+from .distributed import (
+    ChunkJob,
+    check_client,
+    cluster_units,
+    queue_order,
+    run_chunk,
+    run_on_cluster,
+)
 from .loadings import DRIVES, Grid, check_cone_model, drive_pattern, warn_breakdown
 from .mapstore import (
     Parts,
@@ -66,6 +66,7 @@ from .mapstore import (
     check_replaceable,
     check_store_path,
     jaxdea_version,
+    previous_chunk_cells,
     write_store,
 )
 from .sweep import VARIABLES, to_dataset
@@ -132,20 +133,7 @@ def _model_settings(model: Model) -> dict[str, Any]:
     return out
 
 
-def _run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, successor, cycles,
-               average, control, tol, early_exit) -> dict[str, np.ndarray]:
-    """One chunk; ``successor`` (continuation) is the pattern of one device's slice."""
-    if protocol == "continuation" and len(devices) > 1:  # whole chains per device slice
-        res = cell_sharded(run_from_rest, devices)(
-            model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
-            cycles=cycles, average=average, control=control,
-            lanes=default_lanes(chain_heads(successor)), early_exit=early_exit,
-            driven=driven_membranes(loadings))
-    else:  # paper and periodic: dealt over the devices; continuation on one device
-        res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
-                        protocol=protocol, successor=successor, tol=tol,
-                        early_exit=early_exit, devices=devices)
-    return {k: np.asarray(getattr(res, k)) for k in VARIABLES}
+_run_chunk = run_chunk  # one chunk in this process (tests replace it)
 
 
 def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
@@ -173,7 +161,7 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
              early_exit: float | None = EARLY_EXIT, control: StepControl = StepControl(),
              chunk_cells: int | None = None,
              store: str | os.PathLike | None = None, resume: bool = False,
-             progress: bool = True) -> xr.Dataset:
+             progress: bool = True, client=None) -> xr.Dataset:
     """Power map of ``model`` over payload mass x damping x frequency (x phase).
 
     ``mass`` (kg, >= 0), ``damping`` (N s/m, >= 0), ``freq`` (Hz, > 0): 1-D increasing axes.
@@ -194,6 +182,14 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     ``<store>.parts`` and the final Dataset to ``store``; ``resume=True`` reuses the
     finished chunks of an interrupted run with identical settings. ``progress``: tqdm bar
     over chunks.
+    ``client``: a ``dask.distributed.Client``: run one task per chunk on its workers (one
+    JAX device per worker process; with ``store`` each worker writes its chunk's part, the
+    caller assembles the store), queued lowest frequency first. Default chunks there:
+    about :data:`jaxdea.studies.distributed.CHUNKS_PER_WORKER` per worker, at least
+    :data:`~jaxdea.studies.distributed.MIN_CLUSTER_CHUNK` and at most
+    :data:`CHUNK_PER_DEVICE` cells (``docs/cluster.md``). ``resume=True`` without
+    ``chunk_cells`` keeps the interrupted run's chunk size, whatever the device or worker
+    count now.
 
     Returns a Dataset with dims (M, c, f[, phase]) and variables P_out, P_in, P_in_signed,
     efficiency, amplitude, v_rms, status (0 = ok, see :data:`jaxdea.STATUS`), steps, residual
@@ -211,6 +207,7 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     """
     # ---- validation (nothing is computed before all of this passes) -------------------
     check_cone_model(model)
+    n_workers = check_client(client) if client is not None else 0
     protocol, (cycles, average, early_exit, direction, tol) = as_keywords(
         protocol, cycles=cycles, average=average, early_exit=early_exit, direction=direction,
         tol=tol)
@@ -248,12 +245,12 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     warn_breakdown(model)
 
     # ---- chunking -----------------------------------------------------------------------
-    devices = tuple(jax.devices())
-    n_dev = len(devices)
+    devices = tuple(jax.devices()) if client is None else ()  # cluster: one per worker
+    n_dev = max(len(devices), 1)
     n_cells = math.prod(shape)
     successor = None
+    n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
     if protocol == "continuation":  # whole chains (all f of a payload and phase) per device
-        n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
         unit = n_f * n_rest * n_dev  # one payload's chains on every device
         target = chunk_cells or CONTINUATION_CHAINS * n_f * n_dev
     else:
@@ -261,8 +258,13 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
         target = chunk_cells or CHUNK_PER_DEVICE * n_dev
     units = -(-n_cells // unit)
     per_chunk = min(-(-int(target) // unit), units)  # units per chunk: no more than the grid
+    if chunk_cells is None and client is not None:
+        per_chunk = cluster_units(units, unit, n_workers, int(target))
     if chunk_cells is None:  # equal chunks: the last one is not mostly padding
         per_chunk = -(-units // -(-units // per_chunk))
+    old = previous_chunk_cells(store) if resume and chunk_cells is None else None
+    if old is not None and old % unit == 0:  # resume keeps the interrupted run's chunks
+        per_chunk = min(old // unit, units)
     chunk = per_chunk * unit
     if protocol == "continuation":
         successor = chain_successors(n_f, n_rest, direction, per_chunk)
@@ -294,29 +296,37 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
         results = {k: np.empty(n_cells, dtype=np.int32 if k in ints else float)
                    for k in VARIABLES}
         computed = reused = 0
+        todo = set(range(n_chunks))
         bar = tqdm(total=n_chunks - len(done), desc="powermap chunks", unit="chunk",
                    disable=not progress, postfix={"reused": len(done)} if done else None)
+        run = dict(protocol=protocol, successor=successor, cycles=int(cycles),
+                   average=int(average), control=control, tol=float(tol), early_exit=early_exit)
+        job = ChunkJob(model=model, grid=grid, chunk=chunk, n_cells=n_cells, run=run, parts=parts)
         try:
             for i in range(n_chunks):
                 lo, hi = i * chunk, min((i + 1) * chunk, n_cells)
-                got = parts.load(i, hi - lo, VARIABLES) if i in done else None
+                got = parts.load(i, hi - lo, VARIABLES, cells=(lo, hi)) if i in done else None
                 if got is not None:
                     reused += 1
+                elif client is not None:  # computed below, on the cluster
+                    bar.total += i in done
+                    continue
                 else:
                     if i in done:  # unreadable part: count it as computed work
                         bar.total += 1
                     idx = np.minimum(np.arange(lo, lo + chunk), hi - 1)  # pad: repeat last cell
-                    out = _run_chunk(model, grid.loadings(idx), devices, protocol=protocol,
-                                     successor=successor, cycles=int(cycles),
-                                     average=int(average), control=control, tol=float(tol),
-                                     early_exit=early_exit)
+                    out = _run_chunk(model, grid.loadings(idx), devices, **run)
                     got = {k: v[: hi - lo] for k, v in out.items()}
                     if parts is not None:
-                        parts.save(i, got)
+                        parts.save(i, got, cells=(lo, hi))
                     computed += 1
                     bar.update(1)
                 for k in VARIABLES:
                     results[k][lo:hi] = got[k]
+                todo.discard(i)
+            if client is not None and todo:
+                computed = run_on_cluster(client, job, queue_order(todo, job, n_f, n_rest),
+                                          results, on_done=lambda: bar.update(1))
         finally:
             bar.close()
 

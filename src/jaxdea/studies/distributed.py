@@ -1,0 +1,206 @@
+"""Power-map chunks as tasks, in this process or on a Dask distributed cluster.
+
+Why: a fine power map is hours of compute on one machine; its chunks are independent, so a
+cluster of worker processes (one machine's cores, or many machines' through SLURM,
+``docs/cluster.md``) runs one task per chunk. Each task builds its chunk's loadings from the
+grid description (:class:`jaxdea.studies.loadings.Grid`: axes and drive pattern, a few kB; no
+loadings or results travel to the worker), runs the chunk on one JAX device of its worker
+process and writes the chunk's part into the store's ``.parts`` folder itself (a shared
+filesystem); it returns only a small receipt (chunk, cell range, SHA-256, pid, seconds). The
+client checks each part against its receipt (:meth:`jaxdea.studies.mapstore.Parts.load`) and
+assembles the final store exactly as the single-process path does, so a map is the same
+whichever path or worker count computed it (one device per chunk on both: a chunk sharded
+over several devices rounds differently, ~1e-11 relative).
+
+Fault tolerance comes from Dask (a task of a lost worker is rerun elsewhere) and from the
+parts (a killed client leaves its finished parts; ``resume=True`` recomputes only the rest).
+dask.distributed is imported only when a client is used.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import SweepError
+from ..engine.batch import (
+    chain_heads,
+    default_lanes,
+    driven_membranes,
+    run_cells,
+    run_from_rest,
+)
+from ..engine.sharding import cell_sharded, use_cpu_cores
+from ..models.cone import Loading, Model
+from .loadings import Grid
+from .mapstore import Parts
+from .sweep import VARIABLES
+
+#: Cluster chunk rule (paper and periodic): about this many chunks per worker, so that the
+#: queue balances (a worker that gets slow chunks takes fewer) and a lost worker loses
+#: little; chunks of at least :data:`MIN_CLUSTER_CHUNK` cells (a task costs ~10 ms of
+#: scheduling and the lane pool needs cells to stay busy) and at most the single-process
+#: chunk per device (:data:`jaxdea.studies.powermap.CHUNK_PER_DEVICE`).
+CHUNKS_PER_WORKER = 4
+MIN_CLUSTER_CHUNK = 256
+
+
+def run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, successor, cycles,
+              average, control, tol, early_exit) -> dict[str, np.ndarray]:
+    """One chunk's results; ``successor`` (continuation) is the pattern of one device's
+    slice."""
+    if protocol == "continuation" and len(devices) > 1:  # whole chains per device slice
+        res = cell_sharded(run_from_rest, devices)(
+            model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
+            cycles=cycles, average=average, control=control,
+            lanes=default_lanes(chain_heads(successor)), early_exit=early_exit,
+            driven=driven_membranes(loadings))
+    else:  # paper and periodic: dealt over the devices; continuation on one device
+        res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
+                        protocol=protocol, successor=successor, tol=tol,
+                        early_exit=early_exit, devices=devices)
+    return {k: np.asarray(getattr(res, k)) for k in VARIABLES}
+
+
+@dataclass
+class ChunkJob:
+    """What a worker needs to compute any chunk of one map: the model, the grid description,
+    the chunk size, the protocol keywords of :func:`run_chunk` and the parts folder (None:
+    the receipt carries the arrays instead)."""
+
+    model: Model
+    grid: Grid
+    chunk: int
+    n_cells: int
+    run: dict[str, Any]
+    parts: Parts | None
+
+    def cells(self, i: int) -> tuple[int, int]:
+        return i * self.chunk, min((i + 1) * self.chunk, self.n_cells)
+
+
+def compute_part(job: ChunkJob, i: int) -> dict[str, Any]:
+    """Task of one chunk on a worker: compute chunk ``i`` on one JAX device, write its part
+    and return a receipt (chunk, cells, sha256, pid, seconds; ``arrays`` without a store).
+
+    **Arguments:**
+
+    - `job`: the map's :class:`ChunkJob`.
+    - `i`: the chunk index.
+
+    **Returns:**
+
+    The receipt, a small dict.
+    """
+    use_cpu_cores(1)  # a fresh worker process: one device (no-op once JAX has started)
+    t0 = time.perf_counter()
+    lo, hi = job.cells(i)
+    idx = np.minimum(np.arange(lo, lo + job.chunk), hi - 1)  # pad: repeat the last cell
+    out = run_chunk(job.model, job.grid.loadings(idx), tuple(jax.devices())[:1], **job.run)
+    got = {k: v[: hi - lo] for k, v in out.items()}
+    receipt: dict[str, Any] = {"chunk": i, "cells": (lo, hi), "pid": os.getpid()}
+    if job.parts is not None:
+        receipt["sha256"] = job.parts.save(i, got, cells=(lo, hi))
+    else:
+        receipt["arrays"] = got
+    receipt["seconds"] = time.perf_counter() - t0
+    return receipt
+
+
+def check_client(client) -> int:
+    """The number of workers of ``client`` (a ``dask.distributed.Client``); SweepError for
+    anything else, or a client with no worker, before any compute."""
+    try:
+        from distributed import Client
+    except ImportError as exc:  # pragma: no cover - a declared dependency
+        raise SweepError(f"client= needs dask.distributed ({exc}): pip install "
+                         "'dask[distributed]'") from None
+    if not isinstance(client, Client):
+        raise SweepError(f"client must be a dask.distributed.Client, got "
+                         f"{type(client).__name__}")
+    try:
+        n = len(client.scheduler_info(n_workers=-1)["workers"])
+    except TypeError:  # older distributed: no n_workers argument
+        n = len(client.scheduler_info()["workers"])
+    except OSError as exc:
+        raise SweepError(f"the Dask client cannot reach its scheduler: {exc}") from None
+    if n < 1:
+        raise SweepError("the Dask cluster has no worker: start workers (or wait for them) "
+                         "before running a map on it")
+    return n
+
+
+def cluster_units(n_units: int, unit: int, n_workers: int, max_cells: int) -> int:
+    """Units (cells, or continuation chains) per chunk on a cluster of ``n_workers``:
+    about :data:`CHUNKS_PER_WORKER` chunks per worker, each of at least
+    :data:`MIN_CLUSTER_CHUNK` cells and at most ``max_cells``."""
+    want = -(-n_units // (CHUNKS_PER_WORKER * n_workers))
+    lo = max(1, -(-MIN_CLUSTER_CHUNK // unit))
+    hi = max(1, max_cells // unit)
+    return max(1, min(n_units, hi, max(lo, want)))
+
+
+def queue_order(chunks, job: ChunkJob, n_f: int, n_rest: int) -> list[int]:
+    """Chunks lowest frequency first (the lowest frequency index among a chunk's cells, then
+    the chunk index), as :func:`jaxdea.engine.batch.schedule` queues cells."""
+    def key(i: int) -> tuple[int, int]:
+        lo, hi = job.cells(i)
+        if hi - lo >= n_f * n_rest:
+            return 0, i
+        return int(((np.arange(lo, hi) // n_rest) % n_f).min()), i
+
+    return sorted(chunks, key=key)
+
+
+def run_on_cluster(client, job: ChunkJob, order: list[int], results: dict[str, np.ndarray],
+                   on_done=None, max_tries: int = 3) -> int:
+    """Run chunks ``order`` (submitted in that order, with decreasing priority) on
+    ``client``'s workers, fill ``results`` from their parts (or receipts) and return the
+    number of chunks computed. A part that fails its check is recomputed (at most
+    ``max_tries`` times); a lost worker's task is rerun by Dask."""
+    from distributed import as_completed
+
+    token = uuid.uuid4().hex[:8]
+    tries = dict.fromkeys(order, 0)
+
+    def submit(i: int, priority: int):
+        tries[i] += 1
+        return client.submit(compute_part, job, i, key=f"jaxdea-chunk-{i}-{token}-{tries[i]}",
+                             priority=priority, pure=False)
+
+    futures = [submit(i, len(order) - r) for r, i in enumerate(order)]
+    done = 0
+    queue = as_completed(futures)
+    try:
+        for fut in queue:
+            receipt = fut.result()
+            i = receipt["chunk"]
+            lo, hi = job.cells(i)
+            if job.parts is None:
+                got = receipt["arrays"]
+            else:
+                got = job.parts.load(i, hi - lo, VARIABLES, cells=(lo, hi),
+                                     sha256=receipt["sha256"])
+            if got is None:
+                if tries[i] >= max_tries:
+                    raise SweepError(f"chunk {i}'s part failed its check {max_tries} times: "
+                                     f"is another run writing to {job.parts.dir}?")
+                fut = submit(i, len(order))
+                futures.append(fut)
+                queue.add(fut)
+                continue
+            for k in VARIABLES:
+                results[k][lo:hi] = got[k]
+            done += 1
+            if on_done is not None:
+                on_done()
+    finally:
+        client.cancel([f for f in futures if not f.done()])
+    return done
