@@ -371,17 +371,34 @@ def _edges(freq, drive, phase, t_end):
 # Right-hand sides (eqs 16-18)
 # ---------------------------------------------------------------------------
 
-def make_rhs(config, mass, damping, params=None):
+def make_rhs(config, mass, damping, params=None, force=None):
     """Return rhs(t, y, phiA, phiB, accumulate=True) for a configuration.
 
     mass = payload mass M (kg), damping = payload dashpot c (N s/m).
     phiA / phiB are the input voltages (constant between drive edges).
+    force: optional payload force law f(v) (N, opposing motion) used instead of
+    ``damping * v``; the state then carries one more accumulator at its end,
+    the integral of ``f(v) v`` (the payload's dissipated energy).
     """
     p = _params(params)
     c = _Const(p)
     c.F0 = preload(p)
     M = float(mass)
     cd = float(damping)
+    if force is not None:
+        _rhs = make_rhs(config, mass, 0.0, params)
+        _, iv, _ = _LAYOUT[config]
+        inv_payload_mass = 1.0 / {"scdea_ls": p["m"] + M, "dcdea_rr": 2.0 * p["m"] + M,
+                                  "dcdea_ls": p["m"] + M}[config]
+
+        def rhs_force(t, y, phiA=0.0, phiB=0.0, accumulate=True):
+            dy = _rhs(t, y[:-1], phiA, phiB, accumulate)
+            v = y[iv]
+            f = force(v)
+            dy[iv] -= f * inv_payload_mass
+            return np.append(dy, f * v if accumulate else 0.0)
+
+        return rhs_force
     m = c.m
     k = c.k
     d0 = c.d0
@@ -460,21 +477,26 @@ _LAYOUT = {
 
 def simulate(config, mass, damping, freq, drive="A", phase=0.0, cycles=100,
              average=5, rtol=1e-9, atol=None, method="LSODA", params=None,
-             points_per_cycle=400, max_step=np.inf):
+             points_per_cycle=400, max_step=np.inf, force=None):
     """Integrate piecewise between drive edges.
 
     Returns (y_end, t_window, x_window): the final state (accumulators hold
     the integrals over the last `average` cycles) and the payload
     trajectory sampled at `points_per_cycle` over the averaging window.
+    force: optional payload force law f(v) (see :func:`make_rhs`); the last
+    state entry is then the integral of f(v) v.
     atol: None -> rtol * state_scales(config); a scalar s -> atol_i =
     s * state_scales(config)[i] (i.e. relative to the component scales);
     an array -> used as is.
     """
     _check_drive(config, drive)
     p = _params(params)
-    rhs = make_rhs(config, mass, damping, p)
+    rhs = make_rhs(config, mass, damping, p, force=force)
     y = initial_state(config, p)
     scales = state_scales(config)
+    if force is not None:
+        y = np.append(y, 0.0)
+        scales = np.append(scales, 1e-4)
     if atol is None:
         atol_v = rtol * scales
     elif np.ndim(atol) == 0:
@@ -533,7 +555,7 @@ def simulate(config, mass, damping, freq, drive="A", phase=0.0, cycles=100,
 def reference_metrics(config, mass, damping, freq, drive="A", phase=0.0,
                       cycles=100, average=5, rtol=1e-9, atol=None,
                       method="LSODA", params=None, points_per_cycle=400,
-                      max_step=np.inf):
+                      max_step=np.inf, force=None):
     """Power metrics over the last `average` of `cycles` drive cycles.
 
     config: 'scdea_ls' | 'dcdea_rr' | 'dcdea_ls'; mass = payload M (kg);
@@ -543,19 +565,21 @@ def reference_metrics(config, mass, damping, freq, drive="A", phase=0.0,
     Returns dict: P_out = c * mean(v^2), P_in = mean(sum max(Phi_in i, 0)),
     P_in_signed, efficiency = P_out / P_in, amplitude = (max - min)/2 of the
     payload displacement (sampled at points_per_cycle), v_rms.
+    force: optional payload force law f(v) (N) instead of ``damping * v``
+    (pass damping=0); P_out is then mean(f(v) v).
     """
     y, t_w, x_w = simulate(config, mass, damping, freq, drive=drive,
                            phase=phase, cycles=cycles, average=average,
                            rtol=rtol, atol=atol, method=method,
                            params=params, points_per_cycle=points_per_cycle,
-                           max_step=max_step)
+                           max_step=max_step, force=force)
     _, _, iacc = _LAYOUT[config]
     Tw = average / freq
-    acc = y[iacc:]
+    acc = y[iacc:] if force is None else y[iacc:-1]
     mean_v2 = acc[0] / Tw
     e_signed = acc[1::2].sum()
     e_pos = acc[2::2].sum()
-    P_out = damping * mean_v2
+    P_out = damping * mean_v2 if force is None else y[-1] / Tw
     P_in = e_pos / Tw
     return {
         "P_out": float(P_out),

@@ -31,7 +31,7 @@ from ._checks import (CalibrationError, ConfigError, DataError, FieldWarning,  #
 # leaves
 from .materials import GentKelvinChain, GentMaxwell, GentSpringDashpot  # noqa: E402
 from .membrane import ConeMembrane  # noqa: E402
-from .payloads import LinearViscous  # noqa: E402
+from .payloads import Drag, LinearViscous  # noqa: E402
 from .signals import MultiSine, Sine, SquareWave, TriangularPattern, voltage_pattern  # noqa: E402
 from .solver import LawsonRK4, SemilinearTerm  # noqa: E402
 
@@ -73,7 +73,7 @@ __all__ = [
     # errors
     "CalibrationError", "ConfigError", "DataError", "FieldWarning", "JaxdeaError", "SweepError",
     # leaves
-    "ConeMembrane", "GentKelvinChain", "GentMaxwell", "GentSpringDashpot", "LawsonRK4",
+    "ConeMembrane", "Drag", "GentKelvinChain", "GentMaxwell", "GentSpringDashpot", "LawsonRK4",
     "LinearViscous", "MultiSine", "SemilinearTerm", "Sine", "SquareWave", "TriangularPattern",
     "voltage_pattern",
     # models

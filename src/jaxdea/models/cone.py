@@ -19,7 +19,7 @@ from jaxtyping import Array, ArrayLike
 
 from ..electrical import charge_rate
 from ..membrane import BREAKDOWN_FIELD, ConeMembrane
-from ..payloads import LinearViscous
+from ..payloads import Drag, LinearViscous
 from ..signals import SquareWave
 from ..solver import Linearisation, exp_decay_weights
 
@@ -93,7 +93,7 @@ class ConeState(eqx.Module):
     charge: Array  #: charge on each membrane, C
     xi_m: Array  #: dielectric dashpot stretch of each membrane
     xi_el: Array  #: electrode dashpot stretch of each membrane
-    payload_work: Array  #: integral of f(v) v dt: energy dissipated in the payload, J
+    payload_work: Array  #: integral of the payload's dissipated power dt (f(v) v), J
     v2: Array  #: integral of v_payload^2 dt, m^2/s
     energy_in: Array  #: integral of Phi_in i dt per membrane (signed), J
 
@@ -102,7 +102,7 @@ class Loading(eqx.Module):
     """Everything outside the actuator: the drive voltages and the payload."""
 
     drive: SquareWave
-    payload: LinearViscous
+    payload: LinearViscous | Drag
 
 
 class ConeActuator(eqx.Module):
@@ -132,7 +132,7 @@ class ConeActuator(eqx.Module):
 
     @abc.abstractmethod
     def accelerations(self, q: Array, v: Array, membrane_forces: Array,
-                      payload: LinearViscous) -> Array:
+                      payload: LinearViscous | Drag) -> Array:
         """Equations of motion (paper 000 eqs 16-18): ``q''`` from the membrane forces."""
 
     @abc.abstractmethod
@@ -185,7 +185,7 @@ class ConeActuator(eqx.Module):
             charge=r.current,
             xi_m=r.dxi_m,
             xi_el=r.dxi_el,
-            payload_work=args.payload.resisting_force(vp) * vp,
+            payload_work=args.payload.dissipated_power(vp),
             v2=vp * vp,
             energy_in=power_in,
         )

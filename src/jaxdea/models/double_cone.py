@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from ..membrane import ConeMembrane
-from ..payloads import LinearViscous
+from ..payloads import Drag, LinearViscous
 from .cone import ConeActuator
 
 
@@ -34,7 +34,7 @@ class DCDEA_RR(ConeActuator):
     def deflections(self, q):
         return jnp.concatenate([q - self.rod_length, q])
 
-    def accelerations(self, q, v, membrane_forces, payload: LinearViscous):
+    def accelerations(self, q, v, membrane_forces, payload: LinearViscous | Drag):
         force = jnp.sum(membrane_forces) - payload.resisting_force(v)
         return force / (2.0 * self.disk_mass + payload.mass)
 
@@ -75,7 +75,7 @@ class DCDEA_LS(ConeActuator):
     def deflections(self, q):
         return q
 
-    def accelerations(self, q, v, membrane_forces, payload: LinearViscous):
+    def accelerations(self, q, v, membrane_forces, payload: LinearViscous | Drag):
         fp = self.spring_force(q)
         acc_a = (membrane_forces[0] - fp) / self.disk_mass
         acc_b = (membrane_forces[1] + fp - payload.resisting_force(v[1])) / (

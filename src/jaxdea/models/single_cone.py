@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from ..membrane import ConeMembrane
-from ..payloads import LinearViscous
+from ..payloads import Drag, LinearViscous
 from .cone import ConeActuator
 
 
@@ -42,7 +42,7 @@ class SCDEA_LS(ConeActuator):
     def deflections(self, q):
         return q
 
-    def accelerations(self, q, v, membrane_forces, payload: LinearViscous):
+    def accelerations(self, q, v, membrane_forces, payload: LinearViscous | Drag):
         force = membrane_forces + self.spring_force(q) - payload.resisting_force(v)
         return force / (self.disk_mass + payload.mass)
 

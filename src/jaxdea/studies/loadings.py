@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -12,10 +13,12 @@ import numpy as np
 
 from .._checks import ConfigError, FieldWarning, SweepError, check_choice, finite_array
 from ..models.cone import Loading, Model
-from ..payloads import LinearViscous
+from ..payloads import Drag, LinearViscous
 from ..signals import SquareWave
 
 DRIVES = ("A", "B", "both")
+#: The payload laws the cone studies take as ``payload=``.
+PAYLOAD_LAWS = (LinearViscous, Drag)
 
 
 def check_cone_model(model) -> None:
@@ -70,10 +73,76 @@ def drive_pattern(model: Model, drive: str, phase: float) -> tuple[np.ndarray, n
     return on, phases
 
 
-def cell_loadings(amplitude, frequency, duty, phase, mass, damping) -> Loading:
+def payload_parameters(payload) -> dict[str, float]:
+    """The law's name and parameters (SI), for a Dataset's attrs: ``{"payload": "Drag",
+    "payload_linear": ..., ...}`` (the mass is recorded separately, as ``mass``)."""
+    out: dict = {"payload": type(payload).__name__}
+    for f in dataclasses.fields(payload):
+        if f.name != "mass":
+            out[f"payload_{f.name}"] = float(np.asarray(getattr(payload, f.name)))
+    return out
+
+
+def check_payload(mass, damping, payload):
+    """Validate the payload of a cone study, before any compute.
+
+    **Arguments:**
+
+    - `mass`: payload mass, kg, or ``None`` to take the payload law's own ``mass``.
+    - `damping`: the linear dashpot's ``c`` (N s/m), shorthand for
+      :class:`~jaxdea.LinearViscous`; ``None`` when `payload` is given.
+    - `payload`: a payload law (:data:`PAYLOAD_LAWS`) or ``None``.
+
+    **Returns:**
+
+    ``(mass, damping, payload)``: the mass as a float array; `damping` as a float array or
+    ``None``; the law with its mass set to ``mass`` (scalar parameters), or ``None``.
+    Raises :class:`~jaxdea.SweepError` naming the offending field.
+    """
+    if payload is None:
+        if damping is None:
+            raise SweepError("damping is missing: give damping (N s/m, the linear viscous "
+                             "payload) or payload=<a payload law, e.g. jaxdea.Drag(...)>")
+        if mass is None:
+            raise SweepError("mass is missing: give the payload mass (kg, >= 0)")
+        return (finite_array("mass", mass, nonnegative=True),
+                finite_array("damping", damping, nonnegative=True), None)
+    if damping is not None:
+        raise SweepError("give damping (shorthand for jaxdea.LinearViscous) or payload, not "
+                         "both: put the damping into the payload law")
+    if not isinstance(payload, PAYLOAD_LAWS):
+        raise SweepError("payload must be a payload law ("
+                         + ", ".join(f"jaxdea.{c.__name__}" for c in PAYLOAD_LAWS)
+                         + f"), got {type(payload).__name__}")
+    for f in dataclasses.fields(payload):
+        value = getattr(payload, f.name)
+        if np.ndim(value) != 0:
+            raise SweepError(f"payload.{f.name} must be a scalar, got shape {np.shape(value)}")
+        finite_array(f"payload.{f.name}", value, nonnegative=True,
+                     positive=f.name in payload.positive_fields)
+    law_mass = float(np.asarray(payload.mass))
+    if mass is None:
+        mass = law_mass
+    mass = finite_array("mass", mass, nonnegative=True)
+    if np.any(mass != law_mass):
+        raise SweepError(f"mass = {mass.tolist()} kg differs from payload.mass = {law_mass:g} "
+                         "kg: give the payload mass once (drop mass=, or make them equal)")
+    return mass, None, payload
+
+
+def cell_payload(payload, mass, n: int):
+    """``payload`` (scalar parameters) for ``n`` cells with masses ``mass`` ``(n,)``, kg."""
+    leaves = {f.name: jnp.broadcast_to(jnp.asarray(getattr(payload, f.name), dtype=float),
+                                       (n,)) for f in dataclasses.fields(payload)}
+    leaves["mass"] = jnp.asarray(mass)
+    return type(payload)(**leaves)
+
+
+def cell_loadings(amplitude, frequency, duty, phase, mass, damping, payload=None) -> Loading:
     """Loadings of ``n`` cells from per-cell arrays: ``amplitude`` and ``phase`` ``(n,
     n_membranes)`` (V, rad), ``frequency``, ``mass``, ``damping`` ``(n,)`` (Hz, kg, N s/m),
-    ``duty`` a scalar."""
+    ``duty`` a scalar. With a payload law ``payload`` (checked, scalar parameters),
+    ``damping`` is ignored and every cell gets that law with its ``mass``."""
     n = np.shape(frequency)[0]
     return Loading(
         drive=SquareWave(
@@ -82,12 +151,13 @@ def cell_loadings(amplitude, frequency, duty, phase, mass, damping) -> Loading:
             duty=jnp.broadcast_to(jnp.asarray(duty), (n,)),
             phase=jnp.asarray(phase),
         ),
-        payload=LinearViscous(mass=jnp.asarray(mass), damping=jnp.asarray(damping)),
+        payload=(LinearViscous(mass=jnp.asarray(mass), damping=jnp.asarray(damping))
+                 if payload is None else cell_payload(payload, mass, n)),
     )
 
 
 def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
-                  phase: float = 0.0) -> Loading:
+                  phase: float = 0.0, payload=None) -> Loading:
     """Loadings (drive and payload per cell) of a cone model.
 
     **Arguments:**
@@ -97,22 +167,25 @@ def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
     - `mass`, `damping`, `freq`: payload mass (kg, >= 0), damping (N s/m, >= 0) and drive
       frequency (Hz, > 0), broadcast against each other.
     - `drive`: ``"A"``, ``"B"`` or ``"both"``; `phase`: B's delay with ``"both"``, rad.
+    - `payload`: a payload law (:class:`~jaxdea.Drag`, :class:`~jaxdea.LinearViscous`) with
+      scalar parameters, instead of `damping` (then ``damping=None``; `mass` may be ``None``
+      to use the law's mass). ``damping=c`` is the shorthand for ``LinearViscous``.
 
     **Returns:**
 
     A :class:`~jaxdea.Loading` whose leaves have the broadcast's cells (flattened, C order)
     as their leading axis.
     """
-    mass = finite_array("mass", mass, nonnegative=True)
-    damping = finite_array("damping", damping, nonnegative=True)
+    mass, damping, payload = check_payload(mass, damping, payload)
     freq = finite_array("freq", freq, positive=True)
     on, phases = drive_pattern(model, drive, float(phase))
-    m, c, f = (a.ravel() for a in np.broadcast_arrays(mass, damping, freq))
+    m, c, f = (a.ravel() for a in np.broadcast_arrays(
+        mass, 0.0 if damping is None else damping, freq))
     n = f.size
     # jnp arithmetic on the model's voltage and duty: they may be traced (calibration)
     amp = jnp.broadcast_to(jnp.asarray(on)[None, :] * model.voltage, (n, on.size))
     return cell_loadings(amp, f, model.duty, jnp.broadcast_to(jnp.asarray(phases), (n, on.size)),
-                         m, c)
+                         m, c, payload)
 
 
 @dataclass

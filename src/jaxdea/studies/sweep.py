@@ -16,11 +16,12 @@ from ..engine.metrics import STATUS, STEADY_RESIDUAL, CycleMetrics, steady_cells
 from ..engine.protocols import Protocol, as_keywords
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
-from .loadings import make_loadings, warn_breakdown
+from .loadings import check_payload, make_loadings, payload_parameters, warn_breakdown
 
 #: Units and descriptions of the per-cell outputs.
 VARIABLES = {
-    "P_out": ("W", "mean payload power over the averaging window (paper 000 eq 19)"),
+    "P_out": ("W", "mean power dissipated in the payload's dissipative elements over the "
+                   "averaging window (paper 000 eq 19: c v^2 for the linear dashpot)"),
     "P_in": ("W", "mean electrical input power without energy recovery (eq 20)"),
     "P_in_signed": ("W", "mean of Phi_in * i, charge returned to the source counted"),
     "efficiency": ("1", "P_out / P_in (eq 21)"),
@@ -38,7 +39,8 @@ STEADY = ("1", f"true where the last cycle ran to its end (status 0 or 4) and re
                "steady-state power")
 
 
-def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
+def sweep(model: Model, *, mass: float | None = None, damping: float | None = None, freq,
+          payload=None, drive: str = "A",
           phase: float = 0.0, cycles: int = 100, average: int = 5,
           control: StepControl = StepControl(), lanes: int | None = None,
           protocol: str | Protocol = "paper", direction: str = "forward",
@@ -47,6 +49,11 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
 
     ``mass`` (kg) and ``damping`` (N s/m) of the payload, ``freq`` (Hz, 1-D), ``drive`` one of
     ``"A"``, ``"B"``, ``"both"``; ``phase`` (rad) of B relative to A when both are driven.
+    ``payload``: a payload law instead of ``damping`` (:class:`jaxdea.Drag`,
+    :class:`jaxdea.LinearViscous`; ``mass`` may then be omitted: the law's mass is used);
+    ``damping=c`` is the shorthand for ``LinearViscous(mass, c)``. P_out is the power
+    dissipated in the payload's dissipative elements; the law and its parameters are in the
+    attrs (``payload``, ``payload_<parameter>``).
     ``protocol="paper"`` (default): each frequency runs ``cycles`` periods from rest; metrics
     average the last ``average``. ``"continuation"``: the same, but each frequency starts from
     the previous one's final state, in ``freq`` order (``direction="backward"``: from the
@@ -77,9 +84,10 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
     if freq.ndim != 1:
         raise SweepError(f"freq must be 1-D, got shape {freq.shape}")
     for name, v in (("mass", mass), ("damping", damping)):
-        if np.ndim(v) != 0:
+        if v is not None and np.ndim(v) != 0:
             raise SweepError(f"{name} must be a scalar for a sweep (use powermap for grids)")
-    loadings = make_loadings(model, mass, damping, freq, drive, phase)
+    mass_arr, _, payload = check_payload(mass, damping, payload)
+    loadings = make_loadings(model, mass_arr[0], damping, freq, drive, phase, payload)
     warn_breakdown(model)
     successor = chain_successors(freq.size, direction=direction)
     devices = tuple(jax.devices())
@@ -87,8 +95,10 @@ def sweep(model: Model, *, mass: float, damping: float, freq, drive: str = "A",
                     lanes=lanes, protocol=protocol, successor=successor, tol=tol,
                     early_exit=early_exit, devices=devices)
     return to_dataset(res, {"f": freq}, attrs=dict(
-        model=model.name, drive=drive, phase=float(phase), mass=float(mass),
-        damping=float(damping), protocol=protocol,
+        model=model.name, drive=drive, phase=float(phase), mass=float(mass_arr[0]),
+        **({"damping": float(damping)} if payload is None else payload_parameters(payload)),
+        P_out_meaning="power dissipated in the payload's dissipative elements",
+        protocol=protocol,
         direction=direction if protocol == "continuation" else None,
         tol=float(tol) if protocol == "periodic" else None,
         early_exit=(float(early_exit) if early_exit is not None and protocol != "periodic"
@@ -118,7 +128,10 @@ def to_dataset(res: CycleMetrics, coords: dict[str, np.ndarray], attrs: dict) ->
             "long_name": coord_attrs.get(k, ("", ""))[1]}) for k, v in coords.items()},
         attrs={k: v for k, v in attrs.items() if v is not None},
     )
-    attr_units = {"mass": "kg", "damping": "N s/m", "phase": "rad", "voltage": "V"}
+    attr_units = {"mass": "kg", "damping": "N s/m", "payload_damping": "N s/m",
+                  "payload_linear": "N s/m", "payload_quadratic": "N s^2/m^2",
+                  "payload_coulomb": "N", "payload_coulomb_velocity": "m/s", "phase": "rad",
+                  "voltage": "V"}
     ds.attrs["attribute_units"] = ", ".join(f"{k}: {u}" for k, u in attr_units.items()
                                             if k in ds.attrs)
     return ds

@@ -1,0 +1,150 @@
+"""Payload laws (issue 17): jaxdea.Drag against the independent scipy transcription, and the
+linear dashpot (damping=c, jaxdea.LinearViscous) unchanged bit for bit.
+
+Every law and configuration runs through ``jaxdea.sweep(payload=...)`` and through
+``scipy_reference.reference_metrics(force=f)`` (LSODA, rtol 1e-9) with the same protocol: 20
+cycles from rest, the last 5 averaged, two frequencies (off resonance and near it). The Drag
+laws share one pytree structure, so jaxdea compiles once per configuration.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import jaxdea
+import scipy_reference as ref
+
+MASS = 2e-3  # kg
+FREQS = (30.0, 75.0)  # Hz
+CYCLES, AVERAGE = 20, 5
+RTOL_POWER = 5e-3
+C, C2, FC = 0.1, 1.0, 0.02  # N s/m, N s^2/m^2, N
+
+# law name -> (jaxdea law, the same force for scipy)
+LAWS = {
+    "linear": (jaxdea.Drag(MASS, linear=C), lambda v: C * v),
+    "quadratic": (jaxdea.Drag(MASS, quadratic=C2), lambda v: C2 * v * abs(v)),
+    "coulomb": (jaxdea.Drag(MASS, coulomb=FC), lambda v: FC * np.tanh(v / 1e-3)),
+}
+CONFIGS = ("scdea_ls", "dcdea_rr", "dcdea_ls")  # drive A
+
+# sweep(mass=MASS, damping=0.1, freq=FREQS, cycles=20, average=5), drive A, computed with the
+# code before payload laws existed (commit 20820f1): the linear path must not move one bit.
+LINEAR_BEFORE = {
+    "scdea_ls": {
+        "P_out": ('0x1.b1843f62a7f28p-10', '0x1.0a3394b389048p-9'),
+        "P_in": ('0x1.900a9ecde561ep-3', '0x1.dbc237304e40ap-2'),
+        "P_in_signed": ('0x1.73c34c94acca3p-3', '0x1.cc8504cba69ddp-2'),
+        "amplitude": ('0x1.cbad16e1069acp-12', '0x1.c55874fc5a0d4p-12'),
+        "v_rms": ('0x1.075e2f31241a9p-3', '0x1.23dd21cf2ffbfp-3'),
+    },
+    "dcdea_rr": {
+        "P_out": ('0x1.921e4824fcb5ep-14', '0x1.6117323a48f84p-8'),
+        "P_in": ('0x1.734966c49e1d2p-3', '0x1.e446d1d4ccbb8p-2'),
+        "P_in_signed": ('0x1.6ac718c6a3452p-3', '0x1.dfa6cc4940b5ep-2'),
+        "amplitude": ('0x1.91a6d34de8958p-13', '0x1.6ec3eb4ef1f6cp-11'),
+        "v_rms": ('0x1.fb4d68c2f958ap-6', '0x1.db5f15a03e6f0p-3'),
+    },
+    "dcdea_ls": {
+        "P_out": ('0x1.93f4eab207896p-14', '0x1.bb26649cca2c0p-9'),
+        "P_in": ('0x1.7775f766ffc62p-3', '0x1.d4251d0824fcep-2'),
+        "P_in_signed": ('0x1.6bf596a8fff49p-3', '0x1.d2ddf6c96676ep-2'),
+        "amplitude": ('0x1.6c3b309565508p-13', '0x1.217aa579f3906p-11'),
+        "v_rms": ('0x1.fc75f0fbb1df6p-6', '0x1.7892f2dd4ce5fp-3'),
+    },
+}
+
+
+def _rel(a, b):
+    return abs(a - b) / abs(b)
+
+
+@pytest.mark.parametrize("cfg", CONFIGS)
+def test_drag_laws_match_scipy_reference(models, cfg):
+    worst = {}
+    failures = []
+    p_out = {}
+    for law_name, (law, force) in LAWS.items():
+        ds = jaxdea.sweep(models[cfg], payload=law, freq=list(FREQS), cycles=CYCLES,
+                          average=AVERAGE)
+        assert np.all(ds.status.values == 0)
+        assert np.all(ds.P_out.values >= 0.0), (law_name, ds.P_out.values)
+        assert ds.attrs["payload"] == "Drag" and ds.attrs["mass"] == MASS
+        p_out[law_name] = ds.P_out.values
+        for i, f in enumerate(FREQS):
+            r = ref.reference_metrics(cfg, MASS, 0.0, f, cycles=CYCLES, average=AVERAGE,
+                                      rtol=1e-9, method="LSODA", force=force)
+            assert r["P_out"] >= 0.0
+            for name in ("P_out", "P_in"):
+                got = float(ds[name].values[i])
+                err = _rel(got, r[name])
+                worst[(law_name, name)] = max(worst.get((law_name, name), 0.0), err)
+                if not err <= RTOL_POWER:
+                    failures.append(f"{law_name} {name} at {f:g} Hz: jaxdea {got:.6g} vs "
+                                    f"scipy {r[name]:.6g} (rel err {err:.3%})")
+    print(f"\n[{cfg}] max rel err: "
+          + ", ".join(f"{law} {name} {v:.2e}" for (law, name), v in worst.items()))
+    assert not failures, "; ".join(failures)
+    # Drag(linear=c) is the linear dashpot: same P_out as damping=c (LINEAR_BEFORE)
+    before = np.array([float.fromhex(x) for x in LINEAR_BEFORE[cfg]["P_out"]])
+    np.testing.assert_allclose(p_out["linear"], before, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("cfg", CONFIGS)
+def test_linear_viscous_unchanged_bit_for_bit(models, cfg):
+    """damping=c and payload=LinearViscous(M, c) give the pre-payload-law numbers exactly."""
+    expected = {k: np.array([float.fromhex(x) for x in v])
+                for k, v in LINEAR_BEFORE[cfg].items()}
+    for kwargs in ({"mass": MASS, "damping": C},
+                   {"payload": jaxdea.LinearViscous(mass=MASS, damping=C)}):
+        ds = jaxdea.sweep(models[cfg], freq=list(FREQS), cycles=CYCLES, average=AVERAGE,
+                          **kwargs)
+        for name, values in expected.items():
+            assert np.array_equal(ds[name].values, values), (cfg, kwargs, name)
+    assert ds.attrs["payload"] == "LinearViscous" and ds.attrs["payload_damping"] == C
+
+
+def test_coulomb_smoothing_effect(models):
+    """The tanh smoothing of the Coulomb term: v_s = 1e-3 vs 1e-4 m/s moves P_out by < 0.5 %
+    (the number quoted in the jaxdea.Drag docstring)."""
+    out = []
+    for vs in (1e-3, 1e-4):
+        ds = jaxdea.sweep(models["scdea_ls"], payload=jaxdea.Drag(MASS, coulomb=FC,
+                                                                  coulomb_velocity=vs),
+                          freq=list(FREQS), cycles=CYCLES, average=AVERAGE)
+        out.append(ds.P_out.values)
+    change = np.abs(out[1] - out[0]) / out[1]
+    print(f"\nCoulomb smoothing: P_out {out[0]} (v_s=1e-3) vs {out[1]} (v_s=1e-4), "
+          f"rel change {change}")
+    assert np.all(change < 5e-3), change
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"payload": jaxdea.Drag(MASS, quadratic=-1.0)}, "payload.quadratic must be >= 0"),
+    ({"payload": jaxdea.Drag(MASS, coulomb=float("nan"))}, "payload.coulomb must be finite"),
+    ({"payload": jaxdea.Drag(MASS, coulomb=0.1, coulomb_velocity=0.0)},
+     "payload.coulomb_velocity must be > 0"),
+    ({"payload": jaxdea.Drag(-1e-3, linear=0.1)}, "payload.mass must be >= 0"),
+    ({"payload": jaxdea.Drag(MASS, linear=[0.1, 0.2])}, "payload.linear must be a scalar"),
+    ({"payload": jaxdea.Drag(MASS, linear=0.1), "damping": 0.1}, "not both"),
+    ({"payload": jaxdea.Drag(MASS, linear=0.1), "mass": 1e-3}, "differs from payload.mass"),
+    ({"payload": "drag"}, "payload must be a payload law"),
+    ({"mass": MASS}, "damping is missing"),
+    ({"damping": 0.1}, "mass is missing"),
+])
+def test_payload_validation(models, kwargs, match):
+    with pytest.raises(jaxdea.SweepError, match=match):
+        jaxdea.sweep(models["scdea_ls"], freq=[50.0], cycles=2, average=1, **kwargs)
+
+
+def test_make_loadings_payload(models):
+    law = jaxdea.Drag(MASS, quadratic=C2, coulomb=FC)
+    loading = jaxdea.make_loadings(models["dcdea_ls"], None, None, [10.0, 20.0, 30.0],
+                                   payload=law)
+    assert isinstance(loading.payload, jaxdea.Drag)
+    np.testing.assert_array_equal(loading.payload.mass, [MASS] * 3)
+    np.testing.assert_array_equal(loading.payload.quadratic, [C2] * 3)
+    v = np.array([-0.3, 0.0, 0.2])
+    np.testing.assert_allclose(law.dissipated_power(v), law.resisting_force(v) * v)
+    assert np.all(np.asarray(law.dissipated_power(np.linspace(-1, 1, 11))) >= 0.0)
