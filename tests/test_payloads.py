@@ -148,3 +148,13 @@ def test_make_loadings_payload(models):
     v = np.array([-0.3, 0.0, 0.2])
     np.testing.assert_allclose(law.dissipated_power(v), law.resisting_force(v) * v)
     assert np.all(np.asarray(law.dissipated_power(np.linspace(-1, 1, 11))) >= 0.0)
+
+
+def test_simulate_takes_a_payload_law(models):
+    kw = dict(freq=75.0, cycles=2, points_per_cycle=50)
+    a = jaxdea.simulate(models["scdea_ls"], mass=MASS, damping=C, **kw)
+    b = jaxdea.simulate(models["scdea_ls"], payload=jaxdea.Drag(MASS, linear=C), **kw)
+    np.testing.assert_allclose(b.payload_position, a.payload_position, rtol=0, atol=1e-15)
+    assert b.attrs["payload"] == "Drag" and a.attrs["damping"] == C
+    with pytest.raises(jaxdea.SweepError, match="not both"):
+        jaxdea.simulate(models["scdea_ls"], damping=C, payload=jaxdea.Drag(MASS), **kw)

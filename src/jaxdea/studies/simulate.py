@@ -16,7 +16,7 @@ import xarray as xr
 from .._checks import SweepError, check_protocol
 from ..models.cone import Model
 from ..solver import LawsonRK4, SemilinearTerm
-from .loadings import make_loadings, warn_breakdown
+from .loadings import check_payload, make_loadings, payload_parameters, warn_breakdown
 
 
 @eqx.filter_jit
@@ -39,8 +39,9 @@ def time_grid(frequency: float, cycles: int, points_per_cycle: int,
     return np.unique(np.round(np.concatenate([k, edges]), 12)) / frequency
 
 
-def simulate(model: Model, *, mass: float, damping: float, freq: float, drive: str = "A",
-             phase: float = 0.0, cycles: int = 10, points_per_cycle: int = 400) -> xr.Dataset:
+def simulate(model: Model, *, mass: float | None = None, damping: float | None = None,
+             freq: float, payload=None, drive: str = "A", phase: float = 0.0,
+             cycles: int = 10, points_per_cycle: int = 400) -> xr.Dataset:
     """Time history of one cone drive case from rest (fixed Lawson RK4 steps, edges on the
     grid), for plots and checks; power studies use :func:`jaxdea.sweep`.
 
@@ -48,6 +49,8 @@ def simulate(model: Model, *, mass: float, damping: float, freq: float, drive: s
 
     - `model`: a square-wave cone from :func:`jaxdea.load_config`.
     - `mass`, `damping`: the payload, kg and N s/m.
+    - `payload`: a payload law (:class:`jaxdea.Drag`, ...) instead of `damping` (`mass` may
+      then be omitted), as in :func:`jaxdea.sweep`.
     - `freq`: drive frequency, Hz.
     - `drive`: ``"A"``, ``"B"`` or ``"both"``; `phase`: B's delay with ``"both"``, rad.
     - `cycles`: drive periods to integrate; `points_per_cycle`: samples (= steps) per period
@@ -62,8 +65,9 @@ def simulate(model: Model, *, mass: float, damping: float, freq: float, drive: s
     check_protocol(cycles, 1)
     if points_per_cycle < 8:
         raise SweepError(f"points_per_cycle must be >= 8, got {points_per_cycle}")
-    loading = jax.tree_util.tree_map(lambda a: a[0],
-                                     make_loadings(model, mass, damping, freq, drive, phase))
+    mass_arr, _, payload = check_payload(mass, damping, payload)
+    loading = jax.tree_util.tree_map(lambda a: a[0], make_loadings(
+        model, mass_arr[0], damping, freq, drive, phase, payload))
     warn_breakdown(model)
     ts = time_grid(float(freq), cycles, points_per_cycle,
                    np.asarray(loading.drive.edge_fractions()))
@@ -81,6 +85,7 @@ def simulate(model: Model, *, mass: float, damping: float, freq: float, drive: s
     return xr.Dataset(
         {k: xr.Variable(*v) for k, v in data.items()},
         coords={"t": xr.Variable(("t",), ts, {"units": "s"}), "membrane": names},
-        attrs=dict(model=model.name, drive=drive, phase=float(phase), mass=float(mass),
-                   damping=float(damping), freq=float(freq)),
+        attrs=dict(model=model.name, drive=drive, phase=float(phase), mass=float(mass_arr[0]),
+                   **({"damping": float(damping)} if payload is None
+                      else payload_parameters(payload)), freq=float(freq)),
     )
