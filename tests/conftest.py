@@ -17,6 +17,20 @@ without_eigen_pool()
 CONFIG_DIR = Path(__file__).parents[1] / "configs"
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test module: the suite compiles hundreds of
+    engines (every config, protocol, shape), and keeping them all grew one process past
+    several GiB and once crashed XLA's compiler late in the run."""
+    yield
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+
+
 @pytest.fixture(scope="session")
 def models():
     return {name: jaxdea.load_config(CONFIG_DIR / f"{name}.toml")
