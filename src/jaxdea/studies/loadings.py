@@ -35,9 +35,10 @@ def check_cone_model(model) -> None:
 
 
 @eqx.filter_jit
-def _nominal_field(model: Model) -> jax.Array:
-    """:meth:`Model.nominal_field` compiled (eagerly, its Newton solve of the rest state took
-    ~0.4 s of dispatch on every sweep and map call)."""
+def nominal_field(model: Model) -> jax.Array:
+    """:meth:`Model.nominal_field` (largest nominal field ``voltage / H_m`` over the membranes
+    at the zero-voltage static equilibrium, V/m; differentiable), compiled once per model
+    structure: run eagerly, its Newton solve of the rest state costs ~0.4 s of dispatch."""
     return model.nominal_field()
 
 
@@ -48,7 +49,7 @@ def warn_breakdown(model: Model, stacklevel: int = 3) -> None:
     ``drive.breakdown_field``). Nothing is checked while the voltage is traced."""
     if isinstance(model.voltage, jax.core.Tracer):
         return
-    field, limit = float(_nominal_field(model)), float(model.breakdown_field)
+    field, limit = float(nominal_field(model)), float(model.breakdown_field)
     if field > limit:
         warnings.warn(FieldWarning(
             f"nominal field {field / 1e6:.4g} MV/m (drive.voltage {float(model.voltage):g} V "

@@ -26,27 +26,9 @@ from ..engine.sensitivity import Steady, solve_designs
 from ..models.cone import Model
 from ..params import get_params, set_params
 from .design import DESIGN_STEADY, check_band, make_builder, peak_designs, resolve, split_names
-from .loadings import check_cone_model
+from .loadings import check_cone_model, nominal_field
 
 OBJECTIVES = ("pmax", "power", "efficiency")
-
-
-def nominal_field(model: Model) -> jax.Array:
-    """Largest nominal field ``voltage / H_m`` over the membranes at the zero-voltage static
-    equilibrium, V/m (differentiable).
-
-    **Arguments:**
-
-    - `model`: a cone :class:`~jaxdea.Model`.
-
-    **Returns:**
-
-    The field, V/m (paper 000 drives at 80 MV/m).
-    """
-    act = model.actuator
-    d = act.deflections(act.equilibrium())
-    h_m = act.membrane.kinematics(d)[3]
-    return model.voltage / jnp.min(h_m)
 
 
 @dataclass
