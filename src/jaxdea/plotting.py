@@ -12,6 +12,7 @@ import numpy as np  # noqa: E402
 import xarray as xr  # noqa: E402
 
 from .calibration import CalibrationResult, Data, FrequencyResponse  # noqa: E402
+from .studies.optimise import OptimiseResult  # noqa: E402
 
 
 def plot_sweep(ds: xr.Dataset, path: str | Path | None = None):
@@ -285,3 +286,49 @@ def plot_fit(result: CalibrationResult, data: Data, path=None):
             a.grid(alpha=0.3)
     fig.suptitle(f"calibration ({result.method}): loss {result.loss:.3g}", fontsize=10)
     return _save(fig, path, dpi=120)
+
+
+#: How each objective of :func:`jaxdea.optimise` is plotted: (scale, unit, axis label).
+_OBJECTIVE_AXES = {"pmax": (1e3, "mW", r"$P_{max}$ over the band (mW)"),
+                   "power": (1e3, "mW", r"$P_{out}$ (mW)"),
+                   "efficiency": (1e2, "%", "efficiency (%)")}
+
+
+def plot_optimise(result: OptimiseResult, path=None, objective: str = "pmax"):
+    """The objective of every start against the iteration of :func:`jaxdea.optimise`, the
+    start it returned highlighted; an infeasible start (failed orbit) leaves a gap.
+
+    **Arguments:**
+
+    - `result`: what :func:`jaxdea.optimise` returned.
+    - `path`: if given, the figure is saved there (PNG) and closed.
+    - `objective`: the objective it maximised, ``"pmax"``, ``"power"`` (both in mW) or
+      ``"efficiency"`` (in %).
+
+    **Returns:**
+
+    The matplotlib figure.
+    """
+    k, unit, label = _OBJECTIVE_AXES[objective]
+    hist = np.asarray(result.history, dtype=float)  # (iterations + 1, starts)
+    y = k * np.where(np.isfinite(hist), hist, np.nan)
+    it = np.arange(hist.shape[0])
+    # the start it returned: the last objective nearest result.objective (which optimise may
+    # recompute from rest, so it can differ from the history in the last digits)
+    gap = np.abs(np.where(np.isfinite(hist[-1]), hist[-1], np.inf) - result.objective)
+    best = np.flatnonzero(gap == gap.min())[:1] if np.isfinite(gap).any() else np.array([], int)
+    others = [s for s in range(hist.shape[1]) if s not in best]
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for i, s in enumerate(others):
+        ax.plot(it, y[:, s], "o-", color="0.6", ms=3, lw=1,
+                label="other starts" if i == 0 else None)
+    for s in best:
+        ax.plot(it, y[:, s], "o-", color="C3", ms=4, lw=2, label=f"start {s} (returned)")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(label)
+    ax.xaxis.get_major_locator().set_params(integer=True)
+    ax.set_title(f"{objective}: {k * result.objective:.4g} {unit} (start 0: "
+                 f"{k * result.start_objective:.4g} {unit})", fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
