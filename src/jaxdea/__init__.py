@@ -53,7 +53,7 @@ from .engine.sharding import use_cpu_cores  # noqa: E402
 from .engine.step_control import StepControl  # noqa: E402
 
 # studies
-from .studies.design import peak_power, steady_objectives  # noqa: E402
+from .studies.design import design_map, peak_power, steady_objectives  # noqa: E402
 from .studies.loadings import make_loadings  # noqa: E402
 from .studies.optimise import OptimiseResult, optimise  # noqa: E402
 from .studies.powermap import powermap  # noqa: E402
@@ -86,7 +86,7 @@ __all__ = [
     "EARLY_EXIT", "STATUS", "Continuation", "CycleMetrics", "Paper", "Periodic", "StepControl",
     "run_protocol", "use_cpu_cores",
     # studies
-    "OptimiseResult", "amplitude_frequency", "displacement", "hysteresis_area",
+    "OptimiseResult", "amplitude_frequency", "design_map", "displacement", "hysteresis_area",
     "make_loadings", "optimise", "peak_power", "powermap", "rotary_study", "simulate",
     "steady_objectives", "sweep", "transient",
     # calibration

@@ -24,7 +24,8 @@ STATUS = {
     1: "Gent lock-up: a stretch reached the limiting-chain limit",
     2: "non-finite state (pull-in / electromechanical instability or overflow)",
     3: "step budget exhausted before the last cycle",
-    4: "not converged: periodic steady state not reached (residual above tolerance)",
+    4: "not converged: no stable periodic steady state reached (residual above tolerance, "
+       "or the periodic orbit found is unstable)",
 }
 
 #: Periodicity residual (:func:`periodicity_residual`) above which a cell's last cycles are

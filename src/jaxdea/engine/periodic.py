@@ -17,7 +17,10 @@ still changes by ~1e-4 per cycle after 100 cycles). :func:`periodic_cells` inste
 
 The metrics of a cell are those of the last cycle integrated from its converged state, and
 ``residual`` is its periodicity residual there. Cells that do not converge (subharmonic or
-chaotic response, or a Newton iteration that does not contract) get status 4.
+chaotic response, or a Newton iteration that does not contract) get status 4, and so do
+cells whose converged orbit is unstable (a Floquet multiplier above
+:data:`STABLE_MULTIPLIER`: the actuator never settles on it), with a NaN residual (so that
+they are never counted steady).
 """
 
 from __future__ import annotations
@@ -97,13 +100,59 @@ def newton_step(jac: np.ndarray, gap: np.ndarray, active: np.ndarray) -> np.ndar
 
     **Returns:**
 
-    ``(n, d)`` steps.
+    ``(n, d)`` steps; NaN for an active cell whose ``J - I`` is singular or not finite (a
+    period map with a multiplier at 1: the orbit is not isolated, and Newton cannot go on).
     """
     d = gap.shape[-1]
     eye = np.eye(d, dtype=gap.dtype)
-    safe = np.where(active[:, None, None], jac - eye, -eye)  # inactive cells: no step
-    step = -np.linalg.solve(safe, gap[..., None])[..., 0]
+    step = -solve_cells(np.where(active[:, None, None], jac - eye, -eye),
+                        np.where(active[:, None], gap, 0.0)[..., None])[..., 0]
     return np.where(active[:, None], step, 0.0)
+
+
+def solve_cells(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a^-1 b`` per cell (leading axis), NaN for a cell whose ``a`` is singular or whose
+    ``a`` or ``b`` is not finite (numpy's batched solve would raise for the whole batch).
+
+    **Arguments:**
+
+    - `a`: ``(n, d, d)``; `b`: ``(n, d, k)``.
+
+    **Returns:**
+
+    ``(n, d, k)``.
+    """
+    fine = np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=(1, 2))
+    eye = np.eye(a.shape[-1], dtype=a.dtype)
+    a = np.where(fine[:, None, None], a, eye)
+    b = np.where(fine[:, None, None], b, 0.0)
+    try:
+        x = np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:  # a singular cell: solve one by one
+        x = np.empty(b.shape, dtype=np.result_type(a, b))
+        for i in range(a.shape[0]):
+            try:
+                x[i] = np.linalg.solve(a[i], b[i])
+            except np.linalg.LinAlgError:
+                fine[i] = False
+    return np.where(fine[:, None, None], x, np.nan)
+
+
+#: Largest Floquet multiplier (spectral radius of the one-period map's Jacobian) of an
+#: orbit counted as stable. Newton shooting converges to unstable periodic orbits too; the
+#: actuator never settles on one (its trajectory from rest stays aperiodic: on a 40 kV
+#: DCDEA-LS map, 6 cells whose 100-cycle runs kept residuals of 0.4-1.3 had Newton orbits
+#: with P_out up to 1.7x off), so such a cell gets status 4. The margin above 1 covers the
+#: error of a multiplier near 1 (a lightly damped, marginally stable orbit).
+STABLE_MULTIPLIER = 1.0 + 1e-3
+
+
+def floquet_radius(jac: np.ndarray) -> np.ndarray:
+    """Spectral radius of each one-period map's Jacobian ``(n, d, d) -> (n,)`` (NaN where
+    the Jacobian is not finite): the orbit is stable if it is below 1."""
+    fine = np.isfinite(jac).all(axis=(1, 2))
+    safe = np.where(fine[:, None, None], jac, 0.0)
+    return np.where(fine, np.abs(np.linalg.eigvals(safe)).max(axis=-1), np.nan)
 
 
 #: Lane pool of the shooting stage. Its lanes carry the d forward-mode tangents of
@@ -148,6 +197,7 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     final = res.final_state
     y = res.final_state
     pending = out["status"] == 4
+    stepped = np.zeros_like(pending)
     for _ in range(int(newton)):
         if not pending.any():
             break
@@ -155,7 +205,7 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
                                     lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
                                     driven=driven))
         step = newton_step(np.asarray(jac), np.asarray(gap), pending)
-        size = np.asarray(_step_size(y, step))
+        size = np.asarray(step_residual(y, step))
         rs = {k: np.asarray(getattr(r, k)) for k in out}
         for k in out:
             if k in ("steps", "cycles_run"):
@@ -163,11 +213,18 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
             elif k != "status":
                 out[k] = np.where(pending, rs[k], out[k])
         ok = rs["status"] == 0
-        converged = pending & ok & (size < tol)
+        converged = pending & ok & (size < tol)  # NaN size (no Newton step) never converges
+        unstable = converged & ~(floquet_radius(np.asarray(jac)) <= STABLE_MULTIPLIER)
+        # a period that fails from the settled state is the actuator's own failure (its
+        # status); one that fails from a Newton iterate (an extrapolated state, not on the
+        # trajectory) only says that Newton did not converge: status 4
         failed = pending & ~ok
-        out["status"] = np.where(failed, rs["status"], np.where(converged, 0, out["status"]))
+        out["status"] = np.where(failed, np.where(stepped, 4, rs["status"]),
+                                 np.where(converged & ~unstable, 0, out["status"]))
+        out["residual"] = np.where(unstable, np.nan, out["residual"])
         final = to_host(select_cells(pending, r.final_state, final))
-        pending = pending & ok & ~converged
+        pending = pending & ok & ~converged & np.isfinite(step).all(axis=1)
+        stepped |= pending
         y = to_host(with_dynamical(y, flatten_dynamical(y) + np.where(pending[:, None], step,
                                                                       0.0)))
     return CycleMetrics(final_state=jax.tree_util.tree_map(jnp.asarray, final),
@@ -175,8 +232,9 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
 
 
 @eqx.filter_jit
-def _step_size(y: ConeState, step: jax.Array) -> jax.Array:
-    """Periodicity residual between ``y`` and ``y + step`` per cell (one device)."""
+def step_residual(y: ConeState, step: jax.Array) -> jax.Array:
+    """Periodicity residual between ``y`` and ``y + step`` per cell (one device): the size
+    of a Newton step, in the scaled norm of :func:`periodicity_residual`."""
     return jax.vmap(periodicity_residual)(
         with_dynamical(y, flatten_dynamical(y) + step), y)
 

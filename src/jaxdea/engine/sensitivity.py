@@ -38,8 +38,16 @@ import numpy as np
 from ..models.cone import ConeState
 from .batch import driven_membranes
 from .lanes import run_protocol
-from .metrics import periodicity_residual
-from .periodic import flatten_dynamical, with_dynamical
+from .periodic import (
+    STABLE_MULTIPLIER,
+    flatten_dynamical,
+    floquet_radius,
+    newton_step,
+    solve_cells,
+    step_residual,
+    with_dynamical,
+)
+from .sharding import cell_sharded
 from .step_control import StepControl
 
 #: The differentiated metrics of a cell, in this order.
@@ -95,7 +103,10 @@ def _settle(build, theta, initial, *, warmup, tol, control, lanes, driven):
 
 def _shoot(build, theta, y, active, *, params, control, lanes, driven):
     """One period of every active cell from ``y`` with the Jacobians of the end state and of
-    the metrics with respect to the start state (and the parameters if ``params``)."""
+    the metrics with respect to the start state (and the parameters if ``params``), and the
+    gap ``Phi_T(y) - y``. The Newton step is solved on the host
+    (:func:`jaxdea.engine.periodic.newton_step`): a batched LAPACK solve inside a program
+    split over devices can deadlock XLA's CPU thread pool."""
 
     def one(build, th, y, act):
         flat = flatten_dynamical(y)
@@ -111,19 +122,41 @@ def _shoot(build, theta, y, active, *, params, control, lanes, driven):
 
         z0 = jnp.zeros(d + n if params else d, flat.dtype)
         (j_out, j_m), res = jax.jacfwd(period, has_aux=True)(z0)
-        out = flatten_dynamical(res.final_state)
-        eye = jnp.eye(d, dtype=flat.dtype)
-        safe = jnp.where(act[:, None, None], j_out[..., :d] - eye, -eye)
-        step = -jax.vmap(jnp.linalg.solve)(safe, out - flat)
-        step = jnp.where(act[:, None], step, 0.0)
-        size = jax.vmap(periodicity_residual)(with_dynamical(y, flat + step), y)
-        return res, j_out, j_m, step, size
+        return res, j_out, j_m, flatten_dynamical(res.final_state) - flat
 
     return jax.vmap(one)(build, theta, y, active)
 
 
+def _settle_split(_, build, theta, initial, **static):
+    return _settle(build, theta, initial, **static)
+
+
+def _shoot_split(_, build, theta, y, active, **static):
+    return _shoot(build, theta, y, active, **static)
+
+
 _SETTLE = eqx.filter_jit(_settle)
 _SHOOT = eqx.filter_jit(_shoot)
+
+
+def _stages(devices: tuple):
+    """The settle and shoot stages over the design axis, split over ``devices`` (each device
+    runs its own designs to the end; no collective) or on one device."""
+    if len(devices) < 2:
+        return (lambda b, th, y0, **kw: _host(_SETTLE(b, th, y0, **kw)),
+                lambda b, th, y, a, **kw: _host(_SHOOT(b, th, y, a, **kw)))
+    settle, shoot = cell_sharded(_settle_split, devices), cell_sharded(_shoot_split, devices)
+    return (lambda b, th, y0, **kw: settle(None, b, th, y0, **kw),
+            lambda b, th, y, a, **kw: shoot(None, b, th, y, a, **kw))
+
+
+def _pad(tree, k: int):
+    """``tree``'s leading (design) axis padded to ``k`` by repeating its last entry."""
+    def pad(a):
+        a = np.asarray(a)
+        return np.concatenate([a, np.repeat(a[-1:], k - a.shape[0], axis=0)]) if \
+            k > a.shape[0] else a
+    return jax.tree_util.tree_map(pad, tree)
 
 
 def _host(tree):
@@ -137,7 +170,8 @@ def stack_designs(builds) -> Callable:
 
 
 def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initial=None,
-                  jac: bool = True, stacked: bool = False) -> SteadyResult:
+                  jac: bool = True, stacked: bool = False,
+                  devices: tuple | None = None) -> SteadyResult:
     """Periodic orbits, metrics and (optionally) their implicit derivatives.
 
     **Arguments:**
@@ -146,10 +180,14 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
       (an ``equinox.Module``), so that new values of its arrays do not recompile.
     - `theta`: ``(K, n)`` parameter vectors, one per design (concrete).
     - `settings`: :class:`Steady`.
-    - `initial`: start states ``(K, C, ...)`` of the settling stage (default: rest).
+    - `initial`: start states ``(K, C, ...)`` of the settling stage (default, and for
+      cells whose start state is not finite: rest at the static equilibrium).
     - `jac`: also return ``d metrics / d theta``.
     - `stacked`: ``build``'s arrays carry a leading design axis (:func:`stack_designs`);
       default: one build shared by every design.
+    - `devices`: split the designs over these JAX devices (each runs its share to the end,
+      with no collective; the design count is padded to a multiple of their number);
+      default: one device.
 
     **Returns:**
 
@@ -160,6 +198,10 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
         raise ValueError(f"theta must be (designs, parameters), got shape {theta.shape}")
     s = settings
     k = theta.shape[0]
+    devices = tuple(devices or jax.devices()[:1])
+    if k < len(devices):
+        devices = devices[:k]
+    kp = -(-k // len(devices)) * len(devices)
     if not stacked:
         build = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k,) + jnp.shape(a)),
                                        build)
@@ -167,9 +209,11 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
     driven = driven_membranes(ld0)
     n_cells = int(ld0.drive.frequency.shape[0])
     lanes = int(min(n_cells, s.lanes))
-    th = jnp.asarray(theta)
-    res = _host(_SETTLE(build, th, initial, warmup=int(s.warmup), tol=float(s.tol),
-                        control=s.control, lanes=lanes, driven=driven))
+    settle, shoot = _stages(devices)
+    build, th = _pad(build, kp), _pad(theta, kp)
+    init = None if initial is None else _with_rest(build, th, _pad(initial, kp))
+    res = _trim(settle(build, th, init, warmup=int(s.warmup), tol=float(s.tol),
+                       control=s.control, lanes=lanes, driven=driven), k)
     status = np.asarray(res.status).copy()
     y = res.final_state
     residual = np.asarray(res.residual).copy()
@@ -182,16 +226,30 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
     # convergence and gives the derivatives at the same time
     pending = (status == 0) | (status == 4)
     status = np.where(pending, 4, status)
+    stepped = np.zeros_like(pending)  # cells moved by a Newton step (off the trajectory)
     for _ in range(int(s.newton) + 1):
         if not pending.any():
             break
-        r, j_out, j_m, step, size = _host(_SHOOT(
-            build, th, y, jnp.asarray(pending), params=jac, control=s.control, lanes=lanes,
-            driven=driven))
+        r, j_out, j_m, gap = _trim(shoot(
+            build, th, _pad(y, kp), _pad(pending, kp) & (np.arange(kp) < k)[:, None],
+            params=jac, control=s.control, lanes=lanes, driven=driven), k)
+        step = newton_step(j_out[..., :d].reshape(-1, d, d), gap.reshape(-1, d),
+                           pending.reshape(-1)).reshape(k, n_cells, d)
+        flat = np.asarray(flatten_dynamical(y))
+        size = np.asarray(step_residual(
+            jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), y),
+            step.reshape(-1, d))).reshape(k, n_cells)
         ok = np.asarray(r.status) == 0
         converged = pending & ok & (size < s.tol)
-        failed = pending & ~ok
-        status = np.where(failed, r.status, np.where(converged, 0, status))
+        # an unstable orbit is not a steady state the actuator reaches: status 4
+        unstable = converged & ~(floquet_radius(j_out[..., :d].reshape(-1, d, d)).reshape(
+            k, n_cells) <= STABLE_MULTIPLIER)
+        status = np.where(unstable, 4, status)
+        pending = pending & ~unstable
+        converged = converged & ~unstable
+        failed = pending & ~ok  # from a Newton iterate: not converged (status 4)
+        status = np.where(failed, np.where(stepped, 4, r.status),
+                          np.where(converged, 0, status))
         residual = np.where(pending, size, residual)
         if converged.any():
             m = _metric_stack(r)
@@ -202,13 +260,37 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
             if jac:
                 a = j_out[converged][..., :d]
                 b = j_out[converged][..., d:]
-                dy = np.linalg.solve(np.eye(d) - a, b)
+                dy = solve_cells(np.eye(d) - a, b)
                 jacs[converged] = j_m[converged][..., d:] + j_m[converged][..., :d] @ dy
-        pending = pending & ok & ~converged
-        flat = np.asarray(flatten_dynamical(y)) + np.where(pending[..., None], step, 0.0)
+        pending = pending & ok & ~converged & np.isfinite(step).all(axis=-1)
+        stepped |= pending
+        flat = flat + np.where(pending[..., None], step, 0.0)
         y = _host(with_dynamical(y, jnp.asarray(flat)))
     return SteadyResult(values=values, jac=jacs, status=status,
                         state=final, residual=residual)
+
+
+@eqx.filter_jit
+def _rest(build, theta):
+    """Rest state (static equilibrium) of every design: leaves ``(K, ...)``."""
+    return jax.vmap(lambda b, th: b(th)[0].initial_state())(build, theta)
+
+
+def _with_rest(build, theta, initial):
+    """``initial`` with every cell whose start state is not finite set to rest."""
+    leaves = jax.tree_util.tree_leaves(initial)
+    bad = ~np.all([np.isfinite(a).reshape(a.shape[:2] + (-1,)).all(-1) for a in leaves], 0)
+    if not bad.any():
+        return initial
+    rest = _host(_rest(build, jnp.asarray(theta)))
+    return jax.tree_util.tree_map(
+        lambda a, r: np.where(bad.reshape(bad.shape + (1,) * (a.ndim - 2)),
+                              np.broadcast_to(r[:, None], a.shape), a), initial, rest)
+
+
+def _trim(tree, k: int):
+    """``tree``'s leading (design) axis cut back to ``k`` (undo :func:`_pad`)."""
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[:k], tree)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0,))

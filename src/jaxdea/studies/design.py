@@ -202,7 +202,8 @@ def _hermite_peak(f0, p0, g0, f1, p1, g1, n=256):
 
 
 def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 2,
-                 settings: Steady = DESIGN_STEADY, jac: bool = True) -> dict[str, np.ndarray]:
+                 settings: Steady = DESIGN_STEADY, jac: bool = True, initial=None,
+                 devices: tuple | None = None) -> dict[str, np.ndarray]:
     """P_max over a band for a batch of designs (host-side; the study's workhorse).
 
     **Arguments:**
@@ -213,21 +214,31 @@ def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 2,
     - `band`: ``(f_lo, f_hi)``, Hz.
     - `grid`: cells per level; `refine`: refinement levels after the coarse grid.
     - `settings`: the periodic solve; `jac`: also the gradient (envelope theorem).
+    - `initial`: start states ``(K, grid, ...)`` of the coarse grid's cells (e.g. the
+      ``"coarse"`` orbits of a nearby design: a continuation); default, and for cells whose
+      start state is NaN: rest.
+    - `devices`: split the designs over these JAX devices (:func:`solve_designs`).
 
     **Returns:**
 
-    ``{"P_max": (K,), "f": (K,), "status": (K,), "grad": (K, n) or None}``.
+    ``{"P_max": (K,), "f": (K,), "status": (K,), "grad": (K, n) or None, "metrics": (K, 4)
+    (:data:`~jaxdea.engine.sensitivity.METRICS` at the peak), "coarse": the orbits' start
+    states on the coarse grid (K, grid, ...), NaN where not converged}``.
     """
     theta = np.asarray(theta, float)
     k, n = theta.shape
     lo, hi = band
     f = np.tile(np.linspace(lo, hi, grid), (k, 1))
     sub_free = (n - 1,)
-    state, samples = None, None
+    state, samples, coarse = initial, None, None
     for level in range(refine + 1):
         last = level == refine
         full_jac = jac and last
-        r = _solve_grid(build, theta, f, state, settings, full_jac, sub_free)
+        r = _solve_grid(build, theta, f, state, settings, full_jac, sub_free, devices)
+        if level == 0:  # converged orbits only (NaN: start from rest)
+            coarse = jax.tree_util.tree_map(lambda a: np.where(
+                (r.status == 0).reshape(r.status.shape + (1,) * (np.ndim(a) - 2)), a, np.nan),
+                r.state)
         p, dpdf = r.values[..., 0], (r.jac[..., 0, -1] if r.jac is not None else None)
         p = np.where(r.status == 0, p, -np.inf)
         samples = (f, p, dpdf, r)
@@ -263,13 +274,14 @@ def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 2,
     rows = np.arange(k)
     ok = np.isfinite(p[rows, j])
     out = dict(P_max=np.where(ok, p[rows, j], np.nan), f=f[rows, j],
-               status=np.where(ok, 0, np.max(r.status, axis=1)), grad=None)
+               status=np.where(ok, 0, np.max(r.status, axis=1)), grad=None, coarse=coarse,
+               metrics=np.where(ok[:, None], r.values[rows, j], np.nan))
     if jac:
         out["grad"] = r.jac[rows, j, 0, :]
     return out
 
 
-def _solve_grid(build, theta, f, state, settings, full_jac, sub_free):
+def _solve_grid(build, theta, f, state, settings, full_jac, sub_free, devices=None):
     """One level: the designs' cells at frequencies ``f`` (K, G), in one batched call, with
     the Jacobian over the shift (and every parameter if ``full_jac``)."""
     k = theta.shape[0]
@@ -279,7 +291,7 @@ def _solve_grid(build, theta, f, state, settings, full_jac, sub_free):
     th = theta if full_jac else theta[:, list(sub_free)]
     init = None if state is None else jax.tree_util.tree_map(jnp.asarray, state)
     return solve_designs(stack_designs(builds), th, settings=settings, initial=init, jac=True,
-                         stacked=True)
+                         stacked=True, devices=devices)
 
 
 class _Peak(eqx.Module):
@@ -371,3 +383,85 @@ def objective_function(model: Model, names, objective: str | Callable, **kw) -> 
     if key is not None:
         return lambda v: jnp.sum(steady_objectives(model, v, **kw)[key])
     return lambda v: objective(steady_objectives(model, v, **kw))
+
+
+def design_map(model: Model, values: dict, *, mass=None, damping=None, band=(1.0, 200.0),
+               drive: str = "A", phase: float | None = None, grid: int = 8, refine: int = 2,
+               settings: Steady = DESIGN_STEADY, devices: tuple | None = None,
+               progress: bool = True):
+    """P_max over a band for every design of a grid of parameter values, in batched calls.
+
+    **Arguments:**
+
+    - `model`: a cone :class:`~jaxdea.Model`.
+    - `values`: ``{name: 1-D array}``: model parameter paths (:mod:`jaxdea.params`) or
+      ``"mass"``, ``"damping"``; the designs are their outer product (one map axis each).
+    - `mass`, `damping`: payload M (kg) and c (N s/m), unless in ``values``.
+    - `band`: ``(f_lo, f_hi)``, Hz; `grid`, `refine`: the peak search (:func:`peak_power`).
+    - `drive`, `phase`: the drive case.
+    - `settings`: the periodic solve.
+    - `devices`: split the designs over these JAX devices (default: every local device).
+    - `progress`: a progress bar over the batches.
+
+    **Returns:**
+
+    An ``xarray.Dataset`` with one dimension per name: ``P_max`` (W), ``f_at_P_max`` (Hz),
+    ``efficiency``, ``P_in`` (W) and ``amplitude`` (m) at the peak, ``field`` (nominal
+    field at the static equilibrium, V/m) and ``status`` (0 = a stable periodic orbit at
+    every frequency searched near the peak).
+    """
+    import xarray as xr
+    from tqdm.auto import tqdm
+
+    from ..params import set_params
+    from .loadings import nominal_field
+
+    check_cone_model(model)
+    if not isinstance(values, dict) or not values:
+        raise SweepError("values must be a non-empty dict {name: 1-D array}")
+    arrays = {k: finite_array(k, v) for k, v in values.items()}
+    for k, a in arrays.items():
+        if a.ndim != 1 or a.size < 1:
+            raise SweepError(f"values[{k!r}] must be a 1-D array of at least one value")
+    mapping = resolve(model, list(arrays))
+    if "freq" in mapping.values():
+        raise SweepError("freq cannot be a design axis: the band fixes it")
+    lo, hi = check_band(band)
+    keys, full, pay = split_names(mapping)
+    names = list(arrays)
+    mesh = np.meshgrid(*arrays.values(), indexing="ij")
+    shape = mesh[0].shape
+    theta = np.stack([mesh[names.index(k)].ravel() for k in keys], axis=1)
+    build = make_builder(model, full, pay, mass=mass, damping=damping,
+                         freq=np.linspace(lo, hi, grid), drive=drive, phase=phase, shift=True)
+    devices = tuple(jax.devices() if devices is None else devices)
+    batch = 8 * len(devices)
+    out = {k: np.full(theta.shape[0], np.nan) for k in ("P_max", "f", "status", "field",
+                                                        *METRICS)}
+    with tqdm(total=theta.shape[0], desc="design map", unit="design",
+              disable=not progress) as bar:
+        for a in range(0, theta.shape[0], batch):
+            th = theta[a:a + batch]
+            padded = np.concatenate([th, np.repeat(th[-1:], batch - len(th), 0)])  # one shape
+            r = peak_designs(build, np.concatenate([padded, np.zeros((batch, 1))], 1),
+                             (lo, hi), grid=grid, refine=refine, settings=settings, jac=False,
+                             devices=devices)
+            r = {k: None if v is None or k == "coarse" else v[:len(th)] for k, v in r.items()}
+            sl = slice(a, a + len(th))
+            out["P_max"][sl], out["f"][sl], out["status"][sl] = r["P_max"], r["f"], r["status"]
+            for i, m in enumerate(METRICS):
+                out[m][sl] = r["metrics"][:, i]
+            n_model = len(full)
+            out["field"][sl] = [float(nominal_field(set_params(model, dict(zip(
+                keys[:n_model], map(float, t[:n_model])))))) for t in th]
+            bar.update(len(th))
+    dims = tuple(names)
+    var = lambda k: (dims, out[k].reshape(shape))  # noqa: E731
+    return xr.Dataset(
+        {"P_max": var("P_max"), "f_at_P_max": var("f"), "efficiency": var("efficiency"),
+         "P_in": var("P_in"), "amplitude": var("amplitude"), "field": var("field"),
+         "status": (dims, out["status"].reshape(shape).astype(int))},
+        coords={k: a for k, a in arrays.items()},
+        attrs={"band_Hz": [lo, hi], "drive": drive, "model": model.actuator.name,
+               "P_max": "largest steady P_out over the band (W); efficiency, P_in and "
+                        "amplitude at that frequency"})

@@ -44,6 +44,10 @@ class OptimiseResult:
     field: float  #: nominal field at the optimum, V/m
     start_objective: float  #: objective of the first start (the given design if in bounds)
     history: list = field(default_factory=list)  #: per iteration: the starts' objectives
+    path: list = field(default_factory=list)  #: per iteration: the starts' values (starts, n)
+    #: P_out, P_in (W), efficiency, amplitude (m) of the returned design's orbit (at
+    #: ``f_at_P_max`` for "pmax"; empty for a callable objective)
+    metrics: dict = field(default_factory=dict)
 
     def to_toml(self, path) -> Path:
         """Write the optimised model as a config that :func:`jaxdea.load_config` reads.
@@ -133,7 +137,7 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
              damping=None, band=None, freq=None, drive: str = "A", phase=None,
              max_field: float = 80e6, starts: int = 8, seed: int = 0, x0: dict | None = None,
              maxiter: int = 20, gtol: float = 1e-3, settings: Steady = DESIGN_STEADY,
-             grid: int = 8, refine: int = 2) -> OptimiseResult:
+             grid: int = 8, refine: int = 2, devices: tuple | None = None) -> OptimiseResult:
     """Maximise steady-state power (or efficiency, or any objective) over bounded parameters.
 
     **Arguments:**
@@ -149,10 +153,17 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
     - `drive`, `phase`: the drive case.
     - `max_field`: largest nominal field at the static equilibrium, V/m.
     - `starts`: number of starts (the first is ``x0`` or the model's values if inside the
-      bounds, the others a Latin hypercube from ``seed``).
+      bounds, the others a Latin hypercube from ``seed``; a start above ``max_field`` is
+      moved towards the first start, to the field limit, if the first start is within it).
     - `maxiter`: most iterations; `gtol`: stop when the projected gradient in the unit box
       is below ``gtol * |objective|``.
     - `settings`, `grid`, `refine`: the periodic solve and the peak search.
+    - `devices`: the JAX devices the starts are split over (each runs its share to the end;
+      default: every local device, e.g. one per core after :func:`jaxdea.use_cpu_cores`).
+
+    Each iteration continues every start's orbits from its last accepted design (the
+    settling stage then starts next to the new orbit); the returned design's objective is
+    re-solved from rest, so it is the steady state that the actuator reaches from rest.
 
     **Returns:**
 
@@ -182,13 +193,19 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
         return np.array([float(nominal_field(_design(model, keys, full, lo + xi * (hi - lo))))
                          for xi in x])
 
-    def evaluate(x):
+    devices = tuple(jax.devices() if devices is None else devices)
+    orbits = {"state": None}  # the coarse orbits of the last evaluated designs
+
+    def evaluate(x, initial=None):
         """Objective, gradient (unit box), peak f and status of the designs ``x``."""
         theta = lo + x * (hi - lo)
         if objective == "pmax":
             r = peak_designs(build, np.concatenate([theta, np.zeros((len(x), 1))], 1),
-                             (lo_f, hi_f), grid=grid, refine=refine, settings=settings)
+                             (lo_f, hi_f), grid=grid, refine=refine, settings=settings,
+                             initial=initial, devices=devices)
+            orbits["state"] = r["coarse"]
             val, g, fpk, st = r["P_max"], r["grad"][:, :-1], r["f"], r["status"]
+            orbits["metrics"] = r["metrics"]
         elif callable(objective):
             val, g = [], []
             for th in theta:
@@ -198,19 +215,28 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
                 g.append(np.asarray(gr))
             val, g, fpk = np.array(val), np.array(g), None
             st = np.where(np.isfinite(val), 0, 4)
+            orbits["metrics"] = None
         else:
-            r = solve_designs(build, theta, settings=settings, jac=True)
+            r = solve_designs(build, theta, settings=settings, jac=True, initial=initial,
+                              devices=devices)
+            orbits["state"] = jax.tree_util.tree_map(lambda a: np.where(
+                (r.status == 0).reshape(r.status.shape + (1,) * (a.ndim - 2)), a, np.nan),
+                r.state)
             i = 0 if objective == "power" else 2
             val, g, fpk, st = r.values[:, 0, i], r.jac[:, 0, i, :], None, r.status[:, 0]
+            orbits["metrics"] = r.values[:, 0]
         bad = (st != 0) | ~np.isfinite(val)
         return np.where(bad, -np.inf, val), np.nan_to_num(g) * (hi - lo), fpk, bad
 
-    x = np.clip(u, 0.0, 1.0)
+    x = _pull_inside(np.clip(u, 0.0, 1.0), fields, max_field)
     e = fields(x)
     val, g, fpk, bad = evaluate(x)  # screening: every start in one batched call
     start_val = float(val[0])
+    here = orbits["state"]  # the orbits of the designs x (continuation's start)
     feasible = (e <= max_field) & ~bad
+    val = np.where(feasible, val, -np.inf)  # infeasible starts are dropped
     history = [val.copy()]
+    path = [lo + x * (hi - lo)]
     alpha = 0.1 / np.maximum(np.max(np.abs(g), axis=1), 1e-300)
     done = ~feasible  # infeasible starts are dropped
     limited = np.zeros(starts, bool)
@@ -228,8 +254,11 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
                     break
                 a, limited[k] = 0.5 * a, True
             alpha[k] = a
-        v2, g2, f2, b2 = evaluate(prop)
+        v2, g2, f2, b2 = evaluate(prop, here)
         better = ~done & ~b2 & (v2 >= val)
+        if here is not None:
+            here = jax.tree_util.tree_map(lambda a, b: np.where(
+                better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), orbits["state"], here)
         s, yv = prop - x, -(g2 - g)
         sy = np.sum(s * yv, axis=1)
         bb = np.where(sy > 0, np.sum(s * s, axis=1) / np.where(sy > 0, sy, 1.0), 2 * alpha)
@@ -240,6 +269,9 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
         fpk = None if fpk is None else np.where(better, f2, fpk)
         done |= alpha * np.max(np.abs(g), axis=1) < 1e-7
         history.append(val.copy())
+        path.append(lo + x * (hi - lo))
+    if len(history) > 1:  # the orbits were continued: report the steady states from rest
+        val, g, fpk, _ = evaluate(x)
     e = fields(x)
     ok = (e <= max_field) & np.isfinite(val)
     if not ok.any():
@@ -252,12 +284,36 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
               f"{(lo if x[k][i] <= 0 else hi)[i]:g}"
               for i, name in enumerate(keys) if x[k][i] <= 0 or x[k][i] >= 1]
     if e[k] >= max_field * (1 - 1e-3):
-        active.append(f"nominal field at max_field ({e[k]:.4g} V/m)")
+        active.append(f"nominal field at max_field ({e[k] / 1e6:.4g} MV/m)")
+    met = orbits["metrics"]
+    metrics = {} if met is None else dict(zip(("P_out", "P_in", "efficiency", "amplitude"),
+                                              map(float, met[k])))
     return OptimiseResult(
         model=best, values=dict(zip(keys, map(float, theta))), objective=float(val[k]),
         f_at_P_max=None if fpk is None else float(fpk[k]),
         gradient=dict(zip(keys, map(float, g[k] / (hi - lo)))), active=active,
-        field=float(e[k]), start_objective=start_val, history=history)
+        field=float(e[k]), start_objective=start_val, history=history, path=path,
+        metrics=metrics)
+
+
+def _pull_inside(x, fields, max_field):
+    """Starts above the field limit moved towards the first start (if that one is within
+    it) to the last point within it on the line between them (bisection), so that no
+    Latin-hypercube start is lost to the field limit; the others are left as they are."""
+    e = fields(x)
+    if e[0] > max_field or (e <= max_field).all():
+        return x
+    x = x.copy()
+    for k in np.nonzero(e > max_field)[0]:
+        a, b = 0.0, 1.0  # fractions of the way from x[0] to x[k]: a within, b above
+        for _ in range(30):
+            t = 0.5 * (a + b)
+            if fields((x[0] + t * (x[k] - x[0]))[None])[0] <= max_field:
+                a = t
+            else:
+                b = t
+        x[k] = x[0] + a * (x[k] - x[0])
+    return x
 
 
 def _projected(x, g):
