@@ -41,17 +41,20 @@ def parse_vary(items: list[str]) -> dict[str, tuple[float, float]]:
 
 def parse_band(text: str) -> tuple[float, float]:
     """``F_LO:F_HI`` -> ``(F_LO, F_HI)`` in Hz with ``0 < F_LO < F_HI`` finite."""
+    from jaxdea import JaxdeaError
+    from jaxdea.studies.design import check_band
+
     parts = text.split(":")
     try:
-        lo, hi = float(parts[0]), float(parts[1])
         if len(parts) != 2:
             raise ValueError
-    except (ValueError, IndexError):
+        band = (float(parts[0]), float(parts[1]))
+    except ValueError:
         raise ValueError(f"--band must be F_LO:F_HI in Hz, e.g. 40:200, got {text!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
-        raise ValueError(f"--band {text!r}: need 0 < F_LO < F_HI, finite (allowed range "
-                         "(0, inf) Hz)")
-    return lo, hi
+    try:
+        return check_band(band)
+    except JaxdeaError as e:
+        raise ValueError(f"--{e}") from None
 
 
 def _check_objective(args) -> tuple[float, float] | None:

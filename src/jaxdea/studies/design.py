@@ -118,7 +118,8 @@ def split_names(mapping: dict) -> tuple[list[str], list[str], list[str]]:
 def make_builder(model, full, pay, *, mass, damping, freq, drive, phase, shift):
     check_cone_model(model)
     on, phases = drive_pattern(model, drive, 0.0 if phase is None else float(phase))
-    params = tuple(make_params(model, full, transforms={n: "linear" for n in full}))
+    params = tuple(make_params(model, full, transforms={n: "linear" for n in full})
+                   if full else ())  # none varied: the model as it is
     pos = {n: len(full) + i for i, n in enumerate(pay)}
     slots = tuple(pos.get(k, -1) for k in PAYLOAD_NAMES)
     for name, v in (("mass", mass), ("damping", damping)):
