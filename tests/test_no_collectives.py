@@ -5,7 +5,8 @@ communication. A collective in any compiled module (e.g. the all-reduce of a gat
 indexes a sharded array with a replicated index) makes every device wait for the others, and
 XLA aborts the whole process ("Termination timeout for 'all reduce' ... 40 seconds exceeded")
 when one device's thread is that late, as happens on a busy core. This test runs a paper and
-a periodic sweep and paper and continuation power maps on 2 CPU devices in a subprocess that
+a periodic sweep, paper and continuation power maps and a design solve (implicit
+gradients, :func:`jaxdea.engine.sensitivity.solve_designs`) on 2 CPU devices in a subprocess that
 dumps every optimized HLO module, and checks that none of them contains a collective.
 """
 
@@ -44,6 +45,15 @@ SCRIPT = textwrap.dedent(f"""
         ds = jaxdea.powermap(model, mass=[1e-3, 2e-3], damping=[0.1], freq=freq,
                              protocol=protocol, progress=False, **short)
         print(protocol, "map: status", ds["status"].values.ravel().tolist())
+    # the design study's solve splits its designs over the devices too
+    from jaxdea.engine.sensitivity import Steady, solve_designs
+    from jaxdea.studies.design import make_builder
+
+    build = make_builder(model, ["voltage"], [], mass=2e-3, damping=0.1,
+                         freq=np.array([60.0, 90.0]), drive="A", phase=None, shift=False)
+    r = solve_designs(build, np.array([[4.9e3], [4.7e3]]), devices=tuple(jax.devices()),
+                      settings=Steady(tol=1e-6, warmup=6, newton=4))
+    print("designs: status", r.status.ravel().tolist())
 """)
 
 
@@ -59,6 +69,7 @@ def test_sharded_runs_compile_no_collective(tmp_path):
     assert res.returncode == 0, res.stderr
     # the periodic sweep really shot (more than its 12 warm-up cycles)
     assert int(re.search(r"periodic sweep: most cycles (\d+)", res.stdout)[1]) > 12
+    assert "designs: status [0, 0, 0, 0]" in res.stdout, res.stdout
     modules = sorted(dump.glob("*after_optimizations.txt"))
     texts = {p.name: p.read_text() for p in modules}
     assert any("num_partitions=2" in t for t in texts.values()), "nothing ran on 2 devices"

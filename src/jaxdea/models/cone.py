@@ -78,6 +78,22 @@ def returned_charge(q0, i0, q1, i1, h, kappa, q_inf):
     return jnp.sum(w * jnp.minimum(i, 0.0), axis=0)
 
 
+def solve_small(a: Array, b: Array) -> Array:
+    """``a^-1 b`` for the 1 x 1 and 2 x 2 systems of the cone models in closed form (else
+    ``jnp.linalg.solve``). Not a LAPACK call: vmapped over designs inside a program split
+    over devices, a batched LAPACK solve splits its batch over XLA's intra-op thread pool and
+    can deadlock it (``jaxdea.engine.periodic.newton_step``)."""
+    n = b.shape[-1]
+    if n == 1:
+        return b / a[..., 0]
+    if n == 2:
+        det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+        return jnp.stack([b[..., 0] * a[..., 1, 1] - a[..., 0, 1] * b[..., 1],
+                          a[..., 0, 0] * b[..., 1] - a[..., 1, 0] * b[..., 0]], -1) / det[
+                              ..., None]
+    return jnp.linalg.solve(a, b)
+
+
 class ConeState(eqx.Module):
     """State of a cone actuator + payload. Leaves have shape (n_dof,), (n_membranes,) or ().
 
@@ -150,7 +166,7 @@ class ConeActuator(eqx.Module):
 
         def newton(_, q):
             jac = jax.jacfwd(self.static_forces)(q)
-            return q - jnp.linalg.solve(jac, self.static_forces(q))
+            return q - solve_small(jac, self.static_forces(q))
 
         return jax.lax.fori_loop(0, iterations, newton, self.static_guess())
 
