@@ -37,6 +37,8 @@ def test_optimise_writes_a_config_no_worse_than_its_start(tmp_path, capsys):
     start = float(re.search(r"start: (\S+) mW", text).group(1))
     assert best > 0 and best >= start  # an ascent never returns worse than its start
     assert re.search(r"gain [+-]\d+\.\d+ %", text) and "MV/m" in text and "active: " in text
+    # two iterations: the run says whether it converged, never silently
+    assert re.search(r"converged: (yes \(|no: stopped at --maxiter 2 )", text), text
     assert png.stat().st_size > 0 and png.read_bytes()[:4] == b"\x89PNG"
 
 

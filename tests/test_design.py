@@ -110,6 +110,7 @@ def test_optimise_returns_a_stationary_feasible_design(models, tmp_path):
     assert res.field <= 80e6  # never a design above max_field
     assert float(nominal_field(res.model)) <= 80e6
     assert res.objective >= res.start_objective
+    assert res.converged and res.stopped in ("gradient", "step")  # before maxiter = 25
     assert np.isclose(res.metrics["P_out"], res.objective)  # the objective's own orbit
     assert 0 < res.metrics["efficiency"] < 1 and res.metrics["P_in"] > res.objective
     assert len(res.path) == len(res.history) and res.path[0].shape == (2, 2)

@@ -160,6 +160,11 @@ def _optimise(args) -> int:
     print(f"nominal field: {result.field / 1e6:.4g} MV/m (limit {args.max_field / 1e6:g} MV/m)")
     print("active: " + ("; ".join(result.active) if result.active
                         else "none (inside the bounds, below the field limit)"))
+    print("converged: yes (" + {"gradient": "projected gradient below its tolerance",
+                                "step": "step length below 1e-7 of the bounds"}[
+        result.stopped] + ")" if result.converged else
+          f"converged: no: stopped at --maxiter {args.maxiter} iterations with the gradient "
+          "not yet small (raise --maxiter)")
     if args.plot:
         plot_optimise(result, args.plot, objective=args.objective)
         print(f"wrote {args.plot}")

@@ -48,6 +48,15 @@ class OptimiseResult:
     #: P_out, P_in (W), efficiency, amplitude (m) of the returned design's orbit (at
     #: ``f_at_P_max`` for "pmax"; empty for a callable objective)
     metrics: dict = field(default_factory=dict)
+    #: why the returned start stopped: "gradient" (projected gradient below ``gtol``),
+    #: "step" (step length below 1e-7 of the box), or "maxiter" (the iteration limit: not a
+    #: converged optimum)
+    stopped: str = "maxiter"
+
+    @property
+    def converged(self) -> bool:
+        """Whether the returned start stopped by a convergence test, not the iteration limit."""
+        return self.stopped in ("gradient", "step")
 
     def to_toml(self, path) -> Path:
         """Write the optimised model as a config that :func:`jaxdea.load_config` reads.
@@ -239,10 +248,13 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
     path = [lo + x * (hi - lo)]
     alpha = 0.1 / np.maximum(np.max(np.abs(g), axis=1), 1e-300)
     done = ~feasible  # infeasible starts are dropped
+    stopped = np.where(feasible, "maxiter", "infeasible").astype(object)
     limited = np.zeros(starts, bool)
     for _ in range(int(maxiter)):
         pg = _projected(x, g)
-        done |= np.max(np.abs(pg), axis=1) <= gtol * np.abs(val)
+        small = ~done & (np.max(np.abs(pg), axis=1) <= gtol * np.abs(val))
+        stopped[small] = "gradient"
+        done |= small
         if done.all():
             break
         prop = x.copy()
@@ -267,7 +279,9 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
         x = np.where(better[:, None], prop, x)
         val, g = np.where(better, v2, val), np.where(better[:, None], g2, g)
         fpk = None if fpk is None else np.where(better, f2, fpk)
-        done |= alpha * np.max(np.abs(g), axis=1) < 1e-7
+        short = ~done & (alpha * np.max(np.abs(g), axis=1) < 1e-7)
+        stopped[short] = "step"
+        done |= short
         history.append(val.copy())
         path.append(lo + x * (hi - lo))
     if len(history) > 1:  # the orbits were continued: report the steady states from rest
@@ -293,7 +307,7 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
         f_at_P_max=None if fpk is None else float(fpk[k]),
         gradient=dict(zip(keys, map(float, g[k] / (hi - lo)))), active=active,
         field=float(e[k]), start_objective=start_val, history=history, path=path,
-        metrics=metrics)
+        metrics=metrics, stopped=str(stopped[k]))
 
 
 def _pull_inside(x, fields, max_field):
