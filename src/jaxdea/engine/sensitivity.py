@@ -152,10 +152,11 @@ def _stages(devices: tuple):
 
 def _pad(tree, k: int):
     """``tree``'s leading (design) axis padded to ``k`` by repeating its last entry."""
-    def pad(a):
-        a = np.asarray(a)
-        return np.concatenate([a, np.repeat(a[-1:], k - a.shape[0], axis=0)]) if \
-            k > a.shape[0] else a
+    def pad(a):  # jnp for the build's arrays: they may be autodiff tracers (jax.grad)
+        if k <= a.shape[0]:
+            return a
+        xp = np if isinstance(a, np.ndarray) else jnp
+        return xp.concatenate([a, xp.repeat(a[-1:], k - a.shape[0], axis=0)])
     return jax.tree_util.tree_map(pad, tree)
 
 

@@ -290,7 +290,9 @@ def _solve_grid(build, theta, f, state, settings, full_jac, sub_free, devices=No
     if not full_jac:
         builds = [Sub(b, jnp.asarray(theta[i]), sub_free) for i, b in enumerate(builds)]
     th = theta if full_jac else theta[:, list(sub_free)]
-    init = None if state is None else jax.tree_util.tree_map(jnp.asarray, state)
+    # host arrays as they are: under jax.grad of peak_power, jnp.asarray here would give
+    # tracers, which the host-side solve cannot read
+    init = None if state is None else jax.tree_util.tree_map(np.asarray, state)
     return solve_designs(stack_designs(builds), th, settings=settings, initial=init, jac=True,
                          stacked=True, devices=devices)
 
