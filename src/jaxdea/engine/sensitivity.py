@@ -85,6 +85,14 @@ class SteadyResult(NamedTuple):
     state: ConeState  #: (K, C, ...) the state y* at the start of the converged period
     residual: np.ndarray  #: (K, C) last Newton step (scaled), or the settling residual
 
+    def converged_states(self) -> ConeState:
+        """:attr:`state` where status is 0, NaN elsewhere: start states for a continuation
+        (:func:`solve_designs` starts a NaN cell from rest)."""
+        ok = self.status == 0
+        return jax.tree_util.tree_map(
+            lambda a: np.where(ok.reshape(ok.shape + (1,) * (np.ndim(a) - 2)), a, np.nan),
+            self.state)
+
 
 def _metric_stack(res) -> jax.Array:
     return jnp.stack([getattr(res, k) for k in METRICS], axis=-1)

@@ -9,11 +9,15 @@ frequency where it occurs. Both are differentiable (``jax.grad``, ``jax.jacfwd``
 ``"freq"``. The derivatives are implicit at the orbit (:mod:`jaxdea.engine.sensitivity`);
 P_max uses the envelope theorem: ``dP_max/dtheta = dP/dtheta`` at the peak frequency f*.
 
-The peak is found by one batched periodic sweep over a coarse grid of ``grid`` frequencies
-(with ``dP/df`` of every cell from the same implicit derivative), then ``refine`` levels of
-``grid`` cells around the maximum of the cubic Hermite interpolant of (P, dP/df) on the
-intervals next to the best cell, each warm-started from the nearest orbit of the level
-before. The result is the best evaluated cell, where ``dP/df`` is ~0 (or a band edge).
+The peak is found by batched periodic sweeps (:func:`peak_designs`): ``grid`` evenly
+spaced frequencies, each with ``dP/df`` from the same implicit derivative, then levels of
+``grid`` cells placed from every sample so far: first inside every interval where ``dP/df``
+turns from + to - (a resonance narrower than the grid spacing is bracketed by its slopes
+even where P at both samples is low), narrowing the best brackets until the best is narrow
+against its peak's width, then a final level over it with the full gradient, where P_max,
+its gradient and the metrics are fitted at the root of ``dP/df`` (the envelope theorem
+holds at that root, not at a cell next to it). Each cell is warm-started from the orbit of
+its nearest sample.
 """
 
 from __future__ import annotations
@@ -191,21 +195,180 @@ def steady_objectives(model: Model, values: dict | None = None, *, mass=None, da
     return {k: v.reshape(shape) for k, v in out.items()}
 
 
-def _hermite_peak(f0, p0, g0, f1, p1, g1, n=256):
+def _hermite_peak(f0, p0, g0, f1, p1, g1):
     """Maximum of the cubic Hermite interpolant of (P, dP/df) on [f0, f1]: (f, P)."""
     h = f1 - f0
-    s = np.linspace(0.0, 1.0, n)
-    h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
-    h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
-    p = h00 * p0 + h10 * h * g0 + h01 * p1 + h11 * h * g1
+    # p(s) = p0 + h g0 s + (3 (p1 - p0) - h (2 g0 + g1)) s^2 + (2 (p0 - p1) + h (g0 + g1)) s^3
+    c1, c2, c3 = h * g0, 3 * (p1 - p0) - h * (2 * g0 + g1), 2 * (p0 - p1) + h * (g0 + g1)
+    roots = np.roots([3 * c3, 2 * c2, c1]) if abs(c3) + abs(c2) > 0 else np.array([])
+    s = np.concatenate([[0.0, 1.0], roots[np.isreal(roots)].real])
+    s = s[(s >= 0) & (s <= 1)]
+    p = p0 + c1 * s + c2 * s**2 + c3 * s**3
     i = int(np.argmax(p))
     return f0 + s[i] * h, p[i]
 
 
-def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 2,
+def hills(f, p, g, band) -> list[tuple[float, int, float]]:
+    """The intervals between neighbouring samples that hold a local maximum of P(f).
+
+    **Arguments:**
+
+    - `f`, `p`, `g`: samples of f (Hz), P (NaN or -inf where not converged) and dP/df of
+      one design, in any order.
+    - `band`: ``(f_lo, f_hi)``.
+
+    **Returns:**
+
+    ``[(score, a, f_c), ...]``, best first, for the intervals ``[f[a], f[a + 1]]`` of the
+    samples *sorted by f* (so ``a`` indexes the sorted samples) where dP/df changes sign
+    from + to -, where the cubic Hermite interpolant of (P, dP/df) peaks inside, or, at a
+    band edge, where P falls away from the edge; ``f_c`` is the interpolant's maximum and
+    ``score`` the larger of its value and the interval's end samples. A resonance narrower
+    than the sample spacing is found by its slopes: left of it dP/df > 0, right of it < 0,
+    however low P is at both samples.
+    """
+    f, p, g = _sorted(f, p, g)
+    lo, hi = band
+    out = []
+    for a in range(len(f) - 1):
+        if not (np.isfinite(p[a]) and np.isfinite(p[a + 1]) and f[a + 1] > f[a]):
+            continue
+        fc, pc = _hermite_peak(f[a], p[a], g[a], f[a + 1], p[a + 1], g[a + 1])
+        turn = g[a] > 0 >= g[a + 1]
+        inside = f[a] < fc < f[a + 1]
+        edge = (a == 0 and f[a] <= lo and g[a] < 0) or (
+            a == len(f) - 2 and f[a + 1] >= hi and g[a + 1] > 0)
+        if turn or inside or edge:
+            out.append((float(max(pc, p[a], p[a + 1])), a, float(fc)))
+    if not out and np.isfinite(p).any():  # no slope information: the best sample's sides
+        j = int(np.nanargmax(np.where(np.isfinite(p), p, np.nan)))
+        for a in (j - 1, j):
+            if 0 <= a < len(f) - 1 and f[a + 1] > f[a]:
+                out.append((float(p[j]), a, float(f[j])))
+    return sorted(out, key=lambda h: -h[0])
+
+
+def _sorted(f, p, g):
+    order = np.argsort(f)
+    return (np.asarray(f, float)[order], np.asarray(p, float)[order],
+            np.nan_to_num(np.asarray(g, float)[order]))
+
+
+def bracket_ready(f, p, g, band) -> bool:
+    """Whether the best :func:`hills` interval is narrow enough for the final level: at a
+    band edge, or at most half the peak's curvature length ``sqrt(P / |d2P/df2|)`` (with
+    d2P/df2 from the slopes at its ends), so that low-order fits over it are exact to
+    ~1e-6 of the peak."""
+    found = hills(f, p, g, band)
+    if not found:
+        return True
+    _, a, fc = found[0]
+    fs, ps, gs = _sorted(f, p, g)
+    lo, hi = band
+    if fc <= lo or fc >= hi:
+        return True
+    width = fs[a + 1] - fs[a]
+    curv = (gs[a + 1] - gs[a]) / width
+    if not (gs[a] > 0 >= gs[a + 1]) or curv >= 0:
+        return False
+    return bool(width <= 0.5 * np.sqrt(max(ps[a], ps[a + 1], 0.0) / -curv))
+
+
+def next_frequencies(f, p, g, level: int, grid: int, band, final: bool = False) -> np.ndarray:
+    """The ``grid`` frequencies of refinement ``level`` (>= 1) of one design.
+
+    A bracketing level shares the cells between the best ``grid // 2**level`` :func:`hills`
+    (at least one; best first), with points evenly inside each interval, which shrinks the
+    bracket of a maximum by the number of points + 1. The ``final`` level spreads the cells
+    evenly over the best hill's interval, ends included, for the fits of
+    :func:`stationary_point`.
+
+    **Arguments:**
+
+    - `f`, `p`, `g`: every sample of the design so far (see :func:`hills`).
+    - `level`: this level (1, 2, ...).
+    - `grid`: cells per level.
+    - `band`: ``(f_lo, f_hi)``.
+    - `final`: the last level.
+
+    **Returns:**
+
+    ``(grid,)`` frequencies in the band.
+    """
+    lo, hi = band
+    fs = np.sort(np.asarray(f, float))
+    found = hills(f, p, g, band)
+    if not found:  # nothing converged: sample the band again (the caller reports status)
+        return np.linspace(lo, hi, grid)
+    if final:
+        _, a, _ = found[0]
+        return np.linspace(fs[a], fs[a + 1], grid)
+    found = found[:max(1, grid // 2**level)]
+    counts = np.full(len(found), grid // len(found))
+    counts[:grid % len(found)] += 1
+    return np.concatenate([np.linspace(fs[a], fs[a + 1], m + 2)[1:-1]
+                           for (_, a, _), m in zip(found, counts)])
+
+
+def stationary_point(f, p, g, rows):
+    """Where dP/df = 0 among the final level's cells of one design, and the values there.
+
+    Fits a quintic (fewer coefficients with fewer cells) to dP/df over the cells and takes
+    its root inside them nearest the best cell; every row of ``rows`` (P, the metrics,
+    the gradient) is interpolated there by the same fit. This is the refinement "solve
+    dP/df = 0" of the envelope theorem: the gradient of P_max is dP/dtheta at that
+    root, and a cell a little off the root would add ``dP/df df*/dtheta`` to the
+    derivative of the reported P_max, large for a narrow resonance that moves with the
+    design. Where there is no root inside (a maximum at a band edge) or a cell did not
+    converge, the best cell is returned as it is.
+
+    **Arguments:**
+
+    - `f`, `p`, `g`: the cells' frequencies, P (-inf where not converged), dP/df.
+    - `rows`: ``(cells, m)`` values to give at the stationary point.
+
+    **Returns:**
+
+    ``(f*, rows at f*)``.
+    """
+    f, p, g = (np.asarray(a, float) for a in (f, p, g))
+    rows = np.asarray(rows, float)
+    j = int(np.argmax(p))
+    deg = min(5, len(f) - 1)
+    if not (np.isfinite(p).all() and np.isfinite(g).all() and np.isfinite(rows).all()) \
+            or np.ptp(f) <= 0 or deg < 1:
+        return f[j], rows[j]
+    fit = np.polynomial.Polynomial.fit(f, g, deg)
+    roots = fit.roots()
+    roots = roots[np.isreal(roots)].real
+    roots = roots[(roots >= f.min()) & (roots <= f.max())]
+    if roots.size == 0:
+        return f[j], rows[j]
+    fstar = roots[np.argmin(np.abs(roots - f[j]))]
+    slope = fit.deriv()
+    for _ in range(3):  # Newton polish (the companion-matrix roots are good to ~1e-8)
+        if slope(fstar) != 0:
+            fstar = fstar - fit(fstar) / slope(fstar)
+    if fit.deriv()(fstar) >= 0:  # a minimum of P, not a peak
+        return f[j], rows[j]
+    out = np.array([np.polynomial.Polynomial.fit(f, col, deg)(fstar) for col in rows.T])
+    return fstar, out
+
+
+def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 6,
                  settings: Steady = DESIGN_STEADY, jac: bool = True, initial=None,
                  devices: tuple | None = None) -> dict[str, np.ndarray]:
     """P_max over a band for a batch of designs (host-side; the study's workhorse).
+
+    Level 0 solves ``grid`` evenly spaced frequencies; each later level solves ``grid``
+    more, placed by :func:`next_frequencies` from every sample so far (P and the implicit
+    dP/df): bracketing levels put cells inside the intervals where dP/df turns from + to -
+    (every such hill at the first level, so that a resonance narrower than the grid
+    spacing is bracketed by its slopes, not lost between samples), until the best bracket
+    is narrow against the peak's width (:func:`bracket_ready`; at least one bracketing
+    level); the final level (with the full gradient) spans that bracket, and
+    :func:`stationary_point` gives P_max, its gradient and metrics where dP/df = 0. Each
+    cell starts from the orbit of its nearest sample.
 
     **Arguments:**
 
@@ -213,9 +376,12 @@ def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 2,
       ``theta``, held at 0 here).
     - `theta`: ``(K, n)`` designs (the shift included).
     - `band`: ``(f_lo, f_hi)``, Hz.
-    - `grid`: cells per level; `refine`: refinement levels after the coarse grid.
+    - `grid`: cells per level; `refine`: most levels after the first (the final level
+      included; 0: the best cell of the first level). Where the levels run out before the
+      bracket is narrow (:func:`bracket_ready`), P_max is the best cell of the final level,
+      not the fitted root.
     - `settings`: the periodic solve; `jac`: also the gradient (envelope theorem).
-    - `initial`: start states ``(K, grid, ...)`` of the coarse grid's cells (e.g. the
+    - `initial`: start states ``(K, grid, ...)`` of the first level's cells (e.g. the
       ``"coarse"`` orbits of a nearby design: a continuation); default, and for cells whose
       start state is NaN: rest.
     - `devices`: split the designs over these JAX devices (:func:`solve_designs`).
@@ -224,62 +390,54 @@ def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 2,
 
     ``{"P_max": (K,), "f": (K,), "status": (K,), "grad": (K, n) or None, "metrics": (K, 4)
     (:data:`~jaxdea.engine.sensitivity.METRICS` at the peak), "coarse": the orbits' start
-    states on the coarse grid (K, grid, ...), NaN where not converged}``.
+    states on the first level (K, grid, ...), NaN where not converged, "levels": the number
+    of levels solved}``.
     """
     theta = np.asarray(theta, float)
     k, n = theta.shape
-    lo, hi = band
-    f = np.tile(np.linspace(lo, hi, grid), (k, 1))
+    f = np.tile(np.linspace(band[0], band[1], grid), (k, 1))
     sub_free = (n - 1,)
-    state, samples, coarse = initial, None, None
-    for level in range(refine + 1):
-        last = level == refine
-        full_jac = jac and last
-        r = _solve_grid(build, theta, f, state, settings, full_jac, sub_free, devices)
-        if level == 0:  # converged orbits only (NaN: start from rest)
-            coarse = jax.tree_util.tree_map(lambda a: np.where(
-                (r.status == 0).reshape(r.status.shape + (1,) * (np.ndim(a) - 2)), a, np.nan),
-                r.state)
-        p, dpdf = r.values[..., 0], (r.jac[..., 0, -1] if r.jac is not None else None)
-        p = np.where(r.status == 0, p, -np.inf)
-        samples = (f, p, dpdf, r)
-        if last:
+    state, coarse, final, level = initial, None, refine == 0, 0
+    ready = np.zeros(k, bool)  # the final level spans a bracket narrow enough for fits
+    seen_f, seen_p, seen_g, seen_y = [], [], [], []  # every level's samples
+    while True:
+        r = _solve_grid(build, theta, f, state, settings, jac and final, sub_free, devices)
+        if level == 0:
+            coarse = r.converged_states()
+        p = np.where(r.status == 0, r.values[..., 0], -np.inf)
+        g = r.jac[..., 0, -1]
+        if final:
             break
-        f_new, state_new = [], []
-        for i in range(k):
-            fi, pi, gi = f[i], p[i], np.nan_to_num(dpdf[i])
-            order = np.argsort(fi)
-            fi, pi, gi = fi[order], pi[order], gi[order]
-            j = int(np.argmax(pi))
-            best_f, best_p = fi[j], pi[j]
-            for a in (j - 1, j):
-                if 0 <= a < grid - 1 and np.isfinite(pi[a]) and np.isfinite(pi[a + 1]) \
-                        and fi[a + 1] > fi[a]:
-                    fc, pc = _hermite_peak(fi[a], pi[a], gi[a], fi[a + 1], pi[a + 1], gi[a + 1])
-                    if pc > best_p:
-                        best_f, best_p = fc, pc
-            width = max(fi[min(j + 1, grid - 1)] - fi[max(j - 1, 0)], 1e-9 * best_f) / grid
-            offsets = (np.arange(grid) - grid // 2) / (grid // 2)
-            fn = np.clip(best_f + width * offsets, lo, hi)
-            f_new.append(fn)
-            near = order[np.abs(fi[:, None] - fn[None, :]).argmin(axis=0)]
-            state_new.append(near)
-        f_next = np.stack(f_new)
-        idx = np.stack(state_new)
+        for seen, new in zip((seen_f, seen_p, seen_g, seen_y), (f, p, g, r.converged_states())):
+            seen.append(new)
+        fa, pa, ga = (np.concatenate(s, axis=1) for s in (seen_f, seen_p, seen_g))
+        level += 1
+        ready = np.array([bracket_ready(fa[i], pa[i], ga[i], band) for i in range(k)])
+        final = level >= refine or (level > 1 and ready.all())
+        f = np.stack([next_frequencies(fa[i], pa[i], ga[i], level, grid, band, final)
+                      for i in range(k)])
+        near = np.abs(fa[:, :, None] - f[:, None, :]).argmin(axis=1)  # (K, grid)
+        ya = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *seen_y)
         state = jax.tree_util.tree_map(
-            lambda a: np.take_along_axis(np.asarray(a), idx.reshape(idx.shape + (1,) * (
-                np.ndim(a) - 2)), axis=1), r.state)
-        f = f_next
-    f, p, dpdf, r = samples
-    j = np.argmax(p, axis=1)
-    rows = np.arange(k)
-    ok = np.isfinite(p[rows, j])
-    out = dict(P_max=np.where(ok, p[rows, j], np.nan), f=f[rows, j],
-               status=np.where(ok, 0, np.max(r.status, axis=1)), grad=None, coarse=coarse,
-               metrics=np.where(ok[:, None], r.values[rows, j], np.nan))
-    if jac:
-        out["grad"] = r.jac[rows, j, 0, :]
-    return out
+            lambda a: np.take_along_axis(a, near.reshape(near.shape + (1,) * (a.ndim - 2)),
+                                         axis=1), ya)
+    nm = r.values.shape[-1]
+    fstar, pmax, status = np.zeros(k), np.full(k, np.nan), np.max(r.status, axis=1)
+    metrics, grad = np.full((k, nm), np.nan), (np.full((k, n), np.nan) if jac else None)
+    for i in range(k):
+        if not np.isfinite(p[i]).any():
+            fstar[i] = f[i, 0]
+            continue
+        rows = r.values[i] if not jac else np.concatenate([r.values[i], r.jac[i, :, 0, :]], 1)
+        if ready[i]:
+            fstar[i], at = stationary_point(f[i], p[i], g[i], rows)
+        else:  # levels ran out before the bracket was narrow: the best cell
+            fstar[i], at = f[i, np.argmax(p[i])], rows[np.argmax(p[i])]
+        pmax[i], metrics[i], status[i] = at[0], at[:nm], 0
+        if jac:
+            grad[i] = at[nm:]
+    return dict(P_max=pmax, f=fstar, status=status, grad=grad, coarse=coarse,
+                metrics=metrics, levels=level + 1)
 
 
 def _solve_grid(build, theta, f, state, settings, full_jac, sub_free, devices=None):
@@ -328,7 +486,7 @@ def check_band(band) -> tuple[float, float]:
 
 def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=None,
                band=(1.0, 200.0), drive: str = "A", phase: float | None = None,
-               grid: int = 8, refine: int = 2,
+               grid: int = 8, refine: int = 6,
                settings: Steady = DESIGN_STEADY) -> dict[str, jax.Array]:
     """P_max over a frequency band at the periodic steady state, differentiable in named
     parameters (envelope theorem: ``dP_max/dtheta = dP/dtheta`` at f*).
@@ -340,7 +498,8 @@ def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=N
     - `mass`, `damping`: payload M (kg) and c (N s/m), unless in ``values``.
     - `band`: ``(f_lo, f_hi)``, Hz.
     - `drive`, `phase`: the drive case.
-    - `grid`: frequencies per level (>= 3); `refine`: refinement levels (>= 0).
+    - `grid`: frequencies per level (>= 3); `refine`: most levels after the first
+      (>= 0; :func:`peak_designs`).
     - `settings`: the periodic solve.
 
     **Returns:**
@@ -389,7 +548,7 @@ def objective_function(model: Model, names, objective: str | Callable, **kw) -> 
 
 
 def design_map(model: Model, values: dict, *, mass=None, damping=None, band=(1.0, 200.0),
-               drive: str = "A", phase: float | None = None, grid: int = 8, refine: int = 2,
+               drive: str = "A", phase: float | None = None, grid: int = 8, refine: int = 6,
                settings: Steady = DESIGN_STEADY, devices: tuple | None = None,
                progress: bool = True):
     """P_max over a band for every design of a grid of parameter values, in batched calls.
@@ -449,7 +608,7 @@ def design_map(model: Model, values: dict, *, mass=None, damping=None, band=(1.0
             r = peak_designs(build, np.concatenate([padded, np.zeros((batch, 1))], 1),
                              (lo, hi), grid=grid, refine=refine, settings=settings, jac=False,
                              devices=devices)
-            r = {k: None if v is None or k == "coarse" else v[:len(th)] for k, v in r.items()}
+            r = {k: v[:len(th)] for k, v in r.items() if k not in ("coarse", "levels", "grad")}
             sl = slice(a, a + len(th))
             out["P_max"][sl], out["f"][sl], out["status"][sl] = r["P_max"], r["f"], r["status"]
             for i, m in enumerate(METRICS):

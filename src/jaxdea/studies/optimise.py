@@ -146,7 +146,7 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
              damping=None, band=None, freq=None, drive: str = "A", phase=None,
              max_field: float = 80e6, starts: int = 8, seed: int = 0, x0: dict | None = None,
              maxiter: int = 20, gtol: float = 1e-3, settings: Steady = DESIGN_STEADY,
-             grid: int = 8, refine: int = 2, devices: tuple | None = None) -> OptimiseResult:
+             grid: int = 8, refine: int = 6, devices: tuple | None = None) -> OptimiseResult:
     """Maximise steady-state power (or efficiency, or any objective) over bounded parameters.
 
     **Arguments:**
@@ -228,9 +228,7 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
         else:
             r = solve_designs(build, theta, settings=settings, jac=True, initial=initial,
                               devices=devices)
-            orbits["state"] = jax.tree_util.tree_map(lambda a: np.where(
-                (r.status == 0).reshape(r.status.shape + (1,) * (a.ndim - 2)), a, np.nan),
-                r.state)
+            orbits["state"] = r.converged_states()
             i = 0 if objective == "power" else 2
             val, g, fpk, st = r.values[:, 0, i], r.jac[:, 0, i, :], None, r.status[:, 0]
             orbits["metrics"] = r.values[:, 0]
