@@ -1,9 +1,13 @@
+import getpass
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
+
+import jax  # noqa: E402
 
 import jaxdea  # noqa: E402
 from jaxdea.engine.sharding import without_eigen_pool  # noqa: E402
@@ -13,6 +17,14 @@ from jaxdea.engine.sharding import without_eigen_pool  # noqa: E402
 # thread (jaxdea.use_cpu_cores does the same for the CLI and benches). Importing jaxdea does
 # not start a JAX backend, so this still takes effect; threading only, numbers unchanged.
 without_eigen_pool()
+
+# Compiled programs go to an on-disk cache shared by the pytest workers: many modules compile
+# the same engines (same config, protocol and shape), and the module-end cache release below
+# would otherwise compile them again; a hit loads the executable instead. The cache is keyed
+# by the program and the compiler's options, so a stale entry is never used.
+_XLA_CACHE = Path(tempfile.gettempdir()) / f"jaxdea-tests-xla-cache-{getpass.getuser()}"
+jax.config.update("jax_compilation_cache_dir", str(_XLA_CACHE))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 CONFIG_DIR = Path(__file__).parents[1] / "configs"
 
@@ -35,3 +47,28 @@ def _release_compiled_programs():
 def models():
     return {name: jaxdea.load_config(CONFIG_DIR / f"{name}.toml")
             for name in ("scdea_ls", "dcdea_rr", "dcdea_ls")}
+
+
+#: Modules whose tests run on any worker, one by one: each compiles its own programs (a
+#: notebook per subprocess, a configuration per gradient check), so keeping them together
+#: saves nothing and puts minutes of work on one worker. They are queued first (the longest
+#: work first keeps the two workers' finishing times close).
+SPREAD = ("test_design_gradients.py", "test_notebooks.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests of :data:`SPREAD` first, the rest in file order."""
+    items.sort(key=lambda item: Path(item.nodeid.split("::")[0]).name not in SPREAD)
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """xdist's ``--dist loadfile`` (a module's tests share its fixtures and compiled programs
+    on one worker), except that each test of :data:`SPREAD` is a unit of its own."""
+    from xdist.scheduler import LoadFileScheduling
+
+    class Scheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::")[0]
+            return nodeid if Path(module).name in SPREAD else module
+
+    return Scheduling(config, log)

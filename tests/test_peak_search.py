@@ -7,7 +7,7 @@ import pytest
 
 from jaxdea.engine.sensitivity import SteadyResult
 from jaxdea.studies import design
-from jaxdea.studies.design import hills, next_frequencies, stationary_point
+from jaxdea.studies.peak_search import hills, next_frequencies, stationary_point
 
 BAND = (20.0, 200.0)
 

@@ -1,0 +1,93 @@
+"""Implicit gradients at the periodic orbit: P_out and efficiency at fixed frequencies and
+P_max over a band (envelope theorem) against central differences in 8 parameters of each
+cone configuration, and reverse mode = forward mode."""
+
+import jax
+import numpy as np
+import pytest
+
+import jaxdea
+from jaxdea.engine.sensitivity import Steady, solve_designs
+from jaxdea.studies.design import (
+    DESIGN_STEADY,
+    make_builder,
+    peak_designs,
+    resolve,
+    split_names,
+    steady_objectives,
+)
+
+# parameters checked per config (8 each, every kind of parameter of the issue covered once
+# over the three: geometry, prestretch, permittivity, electrode thickness and resistance,
+# material constants, voltage, duty, spring, deflection, disk mass, M, c); the relative
+# central-difference step is H
+PARAMS = {
+    "scdea_ls": ["membrane.prestretch", "membrane.thickness", "membrane.electrode_thickness",
+                 "membrane.electrode_resistance", "membrane.dielectric.mu_A", "voltage",
+                 "actuator.spring_stiffness", "mass"],
+    "dcdea_rr": ["membrane.prestretch", "membrane.relative_permittivity",
+                 "membrane.dielectric.tau", "duty", "actuator.rod_length",
+                 "membrane.inner_radius", "mass", "damping"],
+    "dcdea_ls": ["membrane.thickness", "membrane.electrode_resistance",
+                 "membrane.dielectric.mu_A", "voltage", "actuator.spring_stiffness",
+                 "actuator.deflection", "actuator.disk_mass", "damping"],
+}
+H = 1e-5
+BAND = (20.0, 160.0)
+
+
+@pytest.mark.parametrize("name,drive,phase", [("scdea_ls", "A", None),
+                                              ("dcdea_rr", "both", 1.0),
+                                              ("dcdea_ls", "B", None)])
+def test_gradients_match_central_differences(models, name, drive, phase):
+    """P_out and efficiency at 8 frequencies, and P_max over the band, against central
+    differences in 8 parameters: the centre design and every +-h in one batched call per
+    level; the P_max search's final level is the same compiled program as the fixed
+    frequencies' solve."""
+    model = models[name]
+    names = PARAMS[name]
+    keys, full, pay = split_names(resolve(model, names))
+    build = make_builder(model, full, pay, mass=None if "mass" in names else 2e-3,
+                         damping=None if "damping" in names else 0.1,
+                         freq=np.linspace(*BAND, 8), drive=drive, phase=phase, shift=True)
+    base = dict(jaxdea.parameter_names(model))
+    theta = np.array([{"mass": 2e-3, "damping": 0.1}.get(k) or base[r]
+                      for k, r in zip(keys, full + pay)] + [0.0])  # + the frequency shift
+    n = theta.size - 1
+    h = H * np.abs(theta[:n])
+    steps = np.zeros((n, n + 1))
+    steps[np.arange(n), np.arange(n)] = h
+    designs = np.concatenate([theta[None], theta + steps, theta - steps])
+    r = solve_designs(build, designs, settings=DESIGN_STEADY)
+    assert (r.status == 0).all()
+    for i, metric in ((0, "P_out"), (2, "efficiency")):
+        fd = (r.values[1:n + 1, :, i] - r.values[n + 1:, :, i]) / (2 * h[:, None])  # (n, 8)
+        g = r.jac[0, :, i, :n].T
+        err = np.abs(fd - g) * np.abs(theta[:n, None]) / np.abs(r.values[0, :, i])
+        print(name, metric, "max rel FD error", err.max())
+        assert err.max() < 1e-4, (metric, dict(zip(keys, err.max(axis=1))))
+    pk = peak_designs(build, designs, BAND)
+    assert (pk["status"] == 0).all()
+    fd = (pk["P_max"][1:n + 1] - pk["P_max"][n + 1:]) / (2 * h)
+    err = np.abs(fd - pk["grad"][0, :n]) * np.abs(theta[:n]) / pk["P_max"][0]
+    print(name, "P_max", 1e3 * pk["P_max"][0], "mW at", pk["f"][0], "Hz; max rel FD error",
+          err.max())
+    assert err.max() < 1e-4, dict(zip(keys, err))
+    assert np.allclose(pk["metrics"][:, 0], pk["P_max"], rtol=1e-9)  # P_out at f* is P_max
+
+
+def test_reverse_mode_equals_forward_mode(models):
+    model = models["scdea_ls"]
+    v = {"actuator.spring_stiffness": 600.0, "membrane.prestretch": 1.2, "mass": 2e-3}
+
+    # both modes use the same implicit Jacobian, so they agree whatever the tolerance: the
+    # protocol's default settings keep this check cheap
+    loose = Steady(tol=1e-6, warmup=12, newton=6)
+
+    def p_out(v):
+        return steady_objectives(model, v, damping=0.1, freq=60.0, settings=loose)["P_out"]
+
+    fwd = jax.jacfwd(p_out)(v)
+    rev = jax.grad(p_out)(v)
+    for k in v:
+        assert np.isclose(fwd[k], rev[k], rtol=1e-12, atol=0), k
