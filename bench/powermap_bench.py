@@ -17,7 +17,15 @@ Periodic protocol: on a 1-200 Hz sweep of four payloads, the wall time of
 information, with the early exit) on the same cells, and its largest P_out difference from a
 400-cycle paper run over the cells where that run has converged (periodicity residual < 1e-8).
 
-    python bench/powermap_bench.py [--quick] [--periodic-only]
+Diffrax baseline (issue 16): what a JAX user writes without jaxdea, a plain ``jax.vmap`` of
+``diffrax.diffeqsolve`` (Tsit5, PID, the square-wave edges as ``jump_ts``, energies as states;
+bench/diffrax_baseline.py) over ``4 x samples`` cells of the map (``4`` random payloads per
+frequency stratum), against jaxdea's engine on the same cells in the same run
+(``jaxdea.engine.batch.run_cells`` on every device, with the early exit, and without it:
+equal work), both second calls; both are checked against LSODA on the first cell of each
+stratum. ``diffrax_ratio`` = diffrax's wall time / jaxdea's (early exit on).
+
+    python bench/powermap_bench.py [--quick] [--periodic-only] [--no-diffrax]
 
 Ends with one line: RESULT key=value ...
 """
@@ -34,6 +42,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "bench"))
 
 import jaxdea  # noqa: E402
 import scipy_reference  # noqa: E402
@@ -44,6 +53,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="4 x 4 x 16, 10 cycles (smoke)")
     ap.add_argument("--samples", type=int, default=8)
     ap.add_argument("--periodic-only", action="store_true", help="only the periodic section")
+    ap.add_argument("--no-diffrax", action="store_true", help="skip the diffrax baseline")
     args = ap.parse_args()
     n_dev = jaxdea.use_cpu_cores()  # before any JAX work: one device per core
     periodic = periodic_section(args.quick)
@@ -104,12 +114,60 @@ def main() -> None:
     print(f"ratio (trajectories/s jaxdea / LSODA): {jax_tps / lsoda_tps:.0f}x; "
           f"projected full 50 x 50 x 996 map: {full_h:.1f} h here "
           f"(LSODA one core: {2500 * 996 / lsoda_tps / 86400:.0f} days)")
+    dfx = {} if args.no_diffrax else diffrax_section(model, mass, damping, freq, idx_f,
+                                                     cycles, rng)
     print(f"RESULT jaxdea_traj_per_s={jax_tps:.2f} lsoda_traj_per_s={lsoda_tps:.3f} "
           f"ratio={jax_tps / lsoda_tps:.1f} cells={n_cells} cycles={cycles} jaxdea_s={jax_s:.1f} "
           f"peak_rss_mib={rss_mb:.0f} projected_full_map_s={full_h * 3600:.0f} "
           f"max_rel_err={max(errs):.2e} devices={n_dev} "
           f"mean_cycles_run={ds.cycles_run.values.mean():.1f} "
-          + " ".join(f"{k}={v}" for k, v in periodic.items()))
+          + " ".join(f"{k}={v}" for k, v in {**dfx, **periodic}.items()))
+
+
+def diffrax_section(model, mass, damping, freq, idx_f, cycles, rng) -> dict[str, str]:
+    """diffrax's vmapped ensemble vs jaxdea's engine on the same map cells (module doc)."""
+    import jax
+
+    from diffrax_baseline import diffrax_cells
+    from jaxdea.engine.batch import run_cells
+
+    per = 4
+    k = np.repeat(idx_f, per)
+    m = mass[rng.integers(len(mass), size=k.size)]
+    c = damping[rng.integers(len(damping), size=k.size)]
+    f = freq[k]
+    dfx = diffrax_cells(model, m, c, f, cycles=cycles, average=5)
+    loading = jaxdea.make_loadings(model, m, c, f, drive="A")
+    devices = tuple(jax.devices())
+    times = {}
+    for name, ee in (("early_exit", jaxdea.EARLY_EXIT), ("all_cycles", None)):
+        for _ in range(2):  # the second call is timed (compile excluded, as for diffrax)
+            t0 = time.perf_counter()
+            res = jax.block_until_ready(run_cells(model, loading, cycles=cycles, average=5,
+                                                  early_exit=ee, devices=devices))
+            times[name] = (time.perf_counter() - t0, res)
+    errs = {"diffrax": [], "jaxdea": []}
+    for i in range(0, k.size, per):
+        ref = scipy_reference.reference_metrics("dcdea_ls", float(m[i]), float(c[i]),
+                                                float(f[i]), cycles=cycles, average=5,
+                                                rtol=1e-8)
+        res = times["early_exit"][1]
+        for name, po, pi in (("diffrax", dfx["P_out"][i], dfx["P_in"][i]),
+                             ("jaxdea", float(res.P_out[i]), float(res.P_in[i]))):
+            errs[name].append(max(abs(po / ref["P_out"] - 1), abs(pi / ref["P_in"] - 1)))
+    jx, jx_all = times["early_exit"][0], times["all_cycles"][0]
+    print(f"diffrax (plain vmap, Tsit5 PID, 1 device): {k.size} cells x {cycles} cycles in "
+          f"{dfx['wall_s']:.2f} s (compile {dfx['compile_s']:.0f} s), all ok "
+          f"{bool(dfx['ok'].all())}; jaxdea on the same cells ({len(devices)} device(s)): "
+          f"{jx:.2f} s with its early exit, {jx_all:.2f} s all cycles; ratio "
+          f"{dfx['wall_s'] / jx:.1f}x ({dfx['wall_s'] / jx_all:.1f}x equal work); max rel err "
+          f"vs LSODA on {len(errs['jaxdea'])} cells: diffrax {max(errs['diffrax']):.1e}, "
+          f"jaxdea {max(errs['jaxdea']):.1e}", flush=True)
+    return {"diffrax_ratio": f"{dfx['wall_s'] / jx:.2f}",
+            "diffrax_ratio_all_cycles": f"{dfx['wall_s'] / jx_all:.2f}",
+            "diffrax_s": f"{dfx['wall_s']:.2f}", "diffrax_cells": str(k.size),
+            "diffrax_err": f"{max(errs['diffrax']):.2e}",
+            "diffrax_jaxdea_err": f"{max(errs['jaxdea']):.2e}"}
 
 
 def periodic_section(quick: bool) -> dict[str, str]:

@@ -203,18 +203,18 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
                          for xi in x])
 
     devices = tuple(jax.devices() if devices is None else devices)
-    orbits = {"state": None}  # the coarse orbits of the last evaluated designs
 
     def evaluate(x, initial=None):
-        """Objective, gradient (unit box), peak f and status of the designs ``x``."""
+        """Objective, gradient (unit box), peak f, failure flags, the orbits (start states
+        for a continuation; None for a callable objective) and metrics of the designs
+        ``x``."""
         theta = lo + x * (hi - lo)
         if objective == "pmax":
             r = peak_designs(build, np.concatenate([theta, np.zeros((len(x), 1))], 1),
                              (lo_f, hi_f), grid=grid, refine=refine, settings=settings,
                              initial=initial, devices=devices)
-            orbits["state"] = r["coarse"]
             val, g, fpk, st = r["P_max"], r["grad"][:, :-1], r["f"], r["status"]
-            orbits["metrics"] = r["metrics"]
+            orbits, met = r["coarse"], r["metrics"]
         elif callable(objective):
             val, g = [], []
             for th in theta:
@@ -224,22 +224,22 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
                 g.append(np.asarray(gr))
             val, g, fpk = np.array(val), np.array(g), None
             st = np.where(np.isfinite(val), 0, 4)
-            orbits["metrics"] = None
+            orbits, met = None, None
         else:
             r = solve_designs(build, theta, settings=settings, jac=True, initial=initial,
                               devices=devices)
-            orbits["state"] = r.converged_states()
             i = 0 if objective == "power" else 2
             val, g, fpk, st = r.values[:, 0, i], r.jac[:, 0, i, :], None, r.status[:, 0]
-            orbits["metrics"] = r.values[:, 0]
+            orbits, met = r.converged_states(), r.values[:, 0]
         bad = (st != 0) | ~np.isfinite(val)
-        return np.where(bad, -np.inf, val), np.nan_to_num(g) * (hi - lo), fpk, bad
+        return np.where(bad, -np.inf, val), np.nan_to_num(g) * (hi - lo), fpk, bad, orbits, met
 
     x = _pull_inside(np.clip(u, 0.0, 1.0), fields, max_field)
     e = fields(x)
-    val, g, fpk, bad = evaluate(x)  # screening: every start in one batched call
+    # screening: every start in one batched call; `here`: the orbits of the designs x
+    # (continuation's start)
+    val, g, fpk, bad, here, met = evaluate(x)
     start_val = float(val[0])
-    here = orbits["state"]  # the orbits of the designs x (continuation's start)
     feasible = (e <= max_field) & ~bad
     val = np.where(feasible, val, -np.inf)  # infeasible starts are dropped
     history = [val.copy()]
@@ -264,11 +264,11 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
                     break
                 a, limited[k] = 0.5 * a, True
             alpha[k] = a
-        v2, g2, f2, b2 = evaluate(prop, here)
+        v2, g2, f2, b2, there, met = evaluate(prop, here)
         better = ~done & ~b2 & (v2 >= val)
         if here is not None:
             here = jax.tree_util.tree_map(lambda a, b: np.where(
-                better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), orbits["state"], here)
+                better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), there, here)
         s, yv = prop - x, -(g2 - g)
         sy = np.sum(s * yv, axis=1)
         bb = np.where(sy > 0, np.sum(s * s, axis=1) / np.where(sy > 0, sy, 1.0), 2 * alpha)
@@ -283,7 +283,7 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
         history.append(val.copy())
         path.append(lo + x * (hi - lo))
     if len(history) > 1:  # the orbits were continued: report the steady states from rest
-        val, g, fpk, _ = evaluate(x)
+        val, g, fpk, _, _, met = evaluate(x)
     e = fields(x)
     ok = (e <= max_field) & np.isfinite(val)
     if not ok.any():
@@ -297,7 +297,6 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
               for i, name in enumerate(keys) if x[k][i] <= 0 or x[k][i] >= 1]
     if e[k] >= max_field * (1 - 1e-3):
         active.append(f"nominal field at max_field ({e[k] / 1e6:.4g} MV/m)")
-    met = orbits["metrics"]
     metrics = {} if met is None else dict(zip(("P_out", "P_in", "efficiency", "amplitude"),
                                               map(float, met[k])))
     return OptimiseResult(
