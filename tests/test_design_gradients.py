@@ -33,15 +33,18 @@ PARAMS = {
                  "actuator.deflection", "actuator.disk_mass", "damping"],
 }
 H = 1e-5
-#: The periodic solve of these checks: the design study's own (engine rtol 1e-7).
-CHECK = DESIGN_STEADY
+#: The periodic solve of these checks, per configuration: the design study's own (engine
+#: rtol 1e-7), except for DCDEA-RR, whose P_max central differences at that rtol are
+#: dominated by the solve's noise (noise / H: 1.4e-3 for the inner radius); at rtol 1e-9
+#: (Steady()) they agree with the envelope gradient to 1.7e-5.
+CHECK = {"scdea_ls": DESIGN_STEADY, "dcdea_rr": Steady(), "dcdea_ls": DESIGN_STEADY}
 #: Largest relative error allowed. P_in (and so the efficiency) counts only the power the
 #: source supplies, the integral of max(Phi i, 0) over a period: its integrand has kinks where
 #: Phi i changes sign, which the adaptive steps resolve only to their local accuracy, so its
 #: derivative is less accurate than P_out's. Measured here (8 frequencies x 8 parameters per
 #: configuration): P_out <= 9e-6, P_max <= 2.1e-5, efficiency <= 3e-5 on SCDEA-LS and DCDEA-LS
-#: but 1.5e-4 on DCDEA-RR (inner radius at 80 Hz); at engine rtol 1e-9 (Steady()) the worst
-#: RR cell is still 1.4e-4 (duty at 40 Hz): tighter steps do not remove it.
+#: but 1.4e-4 on DCDEA-RR (duty at 40 Hz; 1.5e-4 for the inner radius at 80 Hz at rtol
+#: 1e-7): tighter steps do not remove it.
 TOL = {"P_out": 1e-4, "efficiency": 3e-4, "P_max": 1e-4}
 BAND = (20.0, 160.0)
 
@@ -68,7 +71,7 @@ def test_gradients_match_central_differences(models, name, drive, phase):
     steps = np.zeros((n, n + 1))
     steps[np.arange(n), np.arange(n)] = h
     designs = np.concatenate([theta[None], theta + steps, theta - steps])
-    r = solve_designs(build, designs, settings=CHECK)
+    r = solve_designs(build, designs, settings=CHECK[name])
     assert (r.status == 0).all()
     for i, metric in ((0, "P_out"), (2, "efficiency")):
         fd = (r.values[1:n + 1, :, i] - r.values[n + 1:, :, i]) / (2 * h[:, None])  # (n, 8)
@@ -76,7 +79,7 @@ def test_gradients_match_central_differences(models, name, drive, phase):
         err = np.abs(fd - g) * np.abs(theta[:n, None]) / np.abs(r.values[0, :, i])
         print(name, metric, "max rel FD error", err.max())
         assert err.max() < TOL[metric], (metric, dict(zip(keys, err.max(axis=1))))
-    pk = peak_designs(build, designs, BAND, settings=CHECK)
+    pk = peak_designs(build, designs, BAND, settings=CHECK[name])
     assert (pk["status"] == 0).all()
     fd = (pk["P_max"][1:n + 1] - pk["P_max"][n + 1:]) / (2 * h)
     err = np.abs(fd - pk["grad"][0, :n]) * np.abs(theta[:n]) / pk["P_max"][0]
