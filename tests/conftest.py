@@ -1,3 +1,4 @@
+import collections
 import getpass
 import sys
 import tempfile
@@ -56,9 +57,15 @@ def models():
 SPREAD = ("test_design_gradients.py", "test_notebooks.py")
 
 
+def _module(item) -> str:
+    return item.nodeid.split("::")[0]
+
+
 def pytest_collection_modifyitems(config, items):
-    """The tests of :data:`SPREAD` first, the rest in file order."""
-    items.sort(key=lambda item: Path(item.nodeid.split("::")[0]).name not in SPREAD)
+    """The tests of :data:`SPREAD` first, then the other modules, most tests first (as
+    xdist's default order of modules; the scheduler below keeps this order)."""
+    count = collections.Counter(_module(item) for item in items)
+    items.sort(key=lambda item: (Path(_module(item)).name not in SPREAD, -count[_module(item)]))
 
 
 def pytest_xdist_make_scheduler(config, log):
@@ -67,6 +74,10 @@ def pytest_xdist_make_scheduler(config, log):
     from xdist.scheduler import LoadFileScheduling
 
     class Scheduling(LoadFileScheduling):
+        def __init__(self, config, log=None):
+            super().__init__(config, log)
+            config.option.loadscopereorder = False  # by test count it put SPREAD last
+
         def _split_scope(self, nodeid: str) -> str:
             module = nodeid.split("::")[0]
             return nodeid if Path(module).name in SPREAD else module
