@@ -57,15 +57,16 @@ def models():
 SPREAD = ("test_design_gradients.py", "test_notebooks.py")
 
 
-def _module(item) -> str:
-    return item.nodeid.split("::")[0]
+def _module(nodeid: str) -> str:
+    return nodeid.split("::")[0]
 
 
 def pytest_collection_modifyitems(config, items):
     """The tests of :data:`SPREAD` first, then the other modules, most tests first (as
     xdist's default order of modules; the scheduler below keeps this order)."""
-    count = collections.Counter(_module(item) for item in items)
-    items.sort(key=lambda item: (Path(_module(item)).name not in SPREAD, -count[_module(item)]))
+    count = collections.Counter(_module(item.nodeid) for item in items)
+    items.sort(key=lambda item: (Path(_module(item.nodeid)).name not in SPREAD,
+                                 -count[_module(item.nodeid)]))
 
 
 def pytest_xdist_make_scheduler(config, log):
@@ -79,7 +80,7 @@ def pytest_xdist_make_scheduler(config, log):
             config.option.loadscopereorder = False  # by test count it put SPREAD last
 
         def _split_scope(self, nodeid: str) -> str:
-            module = nodeid.split("::")[0]
+            module = _module(nodeid)
             return nodeid if Path(module).name in SPREAD else module
 
     return Scheduling(config, log)

@@ -166,7 +166,7 @@ def stationary_point(f, p, g, rows):
     for _ in range(3):  # Newton polish (the companion-matrix roots are good to ~1e-8)
         if slope(fstar) != 0:
             fstar = fstar - fit(fstar) / slope(fstar)
-    if fit.deriv()(fstar) >= 0:  # a minimum of P, not a peak
+    if slope(fstar) >= 0:  # a minimum of P, not a peak
         return f[j], rows[j]
     out = np.array([np.polynomial.Polynomial.fit(f, col, deg)(fstar) for col in rows.T])
     return fstar, out
