@@ -249,22 +249,27 @@ def preload(params=None):
 # Static equilibrium and initial state
 # ---------------------------------------------------------------------------
 
-def _static_residual(config, x, p, F0):
+def _static_residual(config, x, p, F0, g=None):
+    """Net static force on each dof; ``g(x_payload)``: payload force against +x at rest."""
+    g = g or (lambda _: 0.0)
     if config == "scdea_ls":
         (d,) = x
-        return [relaxed_force(d, p) + F0 - p["k"] * (d - p["d0"])]
+        return [relaxed_force(d, p) + F0 - p["k"] * (d - p["d0"]) - g(d)]
     if config == "dcdea_rr":
         (dB,) = x
-        return [relaxed_force(dB - p["L_r"], p) + relaxed_force(dB, p)]
+        return [relaxed_force(dB - p["L_r"], p) + relaxed_force(dB, p) - g(dB)]
     if config == "dcdea_ls":
         dA, dB = x
         Fp = F0 - p["k"] * ((dB - dA) - 2.0 * p["d0"])
-        return [relaxed_force(dA, p) - Fp, relaxed_force(dB, p) + Fp]
+        return [relaxed_force(dA, p) - Fp, relaxed_force(dB, p) + Fp - g(dB)]
     raise ValueError(f"unknown config {config!r}")
 
 
-def static_equilibrium(config, params=None):
+def static_equilibrium(config, params=None, position_force=None):
     """Static (relaxed, unactuated) positions, found with fsolve.
+
+    position_force: optional payload force g(x) (N, against +x) at the payload's
+    position x, included in the balance (a weight, a preloaded spring).
 
     Returns a dict with 'F0' and the position(s): 'd' (scdea_ls),
     'd_B' and 'd_A' = d_B - L_r (dcdea_rr), 'd_A', 'd_B' (dcdea_ls).
@@ -280,10 +285,15 @@ def static_equilibrium(config, params=None):
         guess = [-0.7 * d0, 1.3 * d0]
     else:
         raise ValueError(f"unknown config {config!r}")
+    if position_force is not None:  # start from the equilibrium without the payload
+        free = static_equilibrium(config, p)
+        guess = [free["d"]] if config == "scdea_ls" else (
+            [free["d_B"]] if config == "dcdea_rr" else [free["d_A"], free["d_B"]])
     sol, info, ier, msg = fsolve(
-        lambda x: _static_residual(config, x, p, F0), guess,
+        lambda x: _static_residual(config, x, p, F0, position_force), guess,
         full_output=True, xtol=1e-14)
-    if ier != 1:
+    # "not making good progress" at xtol 1e-14 is round-off: accept a balance to 1e-12 N
+    if ier != 1 and not np.max(np.abs(info["fvec"])) < 1e-12:
         raise RuntimeError(f"static equilibrium failed: {msg}")
     out = {"F0": F0}
     if config == "scdea_ls":
@@ -302,10 +312,10 @@ def _membrane_init(d, p):
     return [0.0, xm, xe]
 
 
-def initial_state(config, params=None):
+def initial_state(config, params=None, position_force=None):
     """At rest at the static positions, Q = 0, relaxed branches, zero energies."""
     p = _params(params)
-    eq = static_equilibrium(config, p)
+    eq = static_equilibrium(config, p, position_force)
     if config == "scdea_ls":
         y = [eq["d"], 0.0] + _membrane_init(eq["d"], p) + [0.0] * 3
     elif config == "dcdea_rr":
@@ -371,7 +381,7 @@ def _edges(freq, drive, phase, t_end):
 # Right-hand sides (eqs 16-18)
 # ---------------------------------------------------------------------------
 
-def make_rhs(config, mass, damping, params=None, force=None):
+def make_rhs(config, mass, damping, params=None, force=None, position_force=None):
     """Return rhs(t, y, phiA, phiB, accumulate=True) for a configuration.
 
     mass = payload mass M (kg), damping = payload dashpot c (N s/m).
@@ -379,15 +389,20 @@ def make_rhs(config, mass, damping, params=None, force=None):
     force: optional payload force law f(v) (N, opposing motion) used instead of
     ``damping * v``; the state then carries one more accumulator at its end,
     the integral of ``f(v) v`` (the payload's dissipated energy).
+    position_force: optional conservative payload force g(x) (N, against +x) at
+    the payload position x (springs, weight): added to f(v), not to the
+    dissipated energy. Either one replaces ``damping * v``.
     """
     p = _params(params)
     c = _Const(p)
     c.F0 = preload(p)
     M = float(mass)
     cd = float(damping)
-    if force is not None:
+    if force is not None or position_force is not None:
+        force = force or (lambda v: 0.0)
+        g = position_force or (lambda x: 0.0)
         _rhs = make_rhs(config, mass, 0.0, params)
-        _, iv, _ = _LAYOUT[config]
+        ix, iv, _ = _LAYOUT[config]
         inv_payload_mass = 1.0 / {"scdea_ls": p["m"] + M, "dcdea_rr": 2.0 * p["m"] + M,
                                   "dcdea_ls": p["m"] + M}[config]
 
@@ -395,7 +410,7 @@ def make_rhs(config, mass, damping, params=None, force=None):
             dy = _rhs(t, y[:-1], phiA, phiB, accumulate)
             v = y[iv]
             f = force(v)
-            dy[iv] -= f * inv_payload_mass
+            dy[iv] -= (f + g(y[ix])) * inv_payload_mass
             return np.append(dy, f * v if accumulate else 0.0)
 
         return rhs_force
@@ -477,7 +492,8 @@ _LAYOUT = {
 
 def simulate(config, mass, damping, freq, drive="A", phase=0.0, cycles=100,
              average=5, rtol=1e-9, atol=None, method="LSODA", params=None,
-             points_per_cycle=400, max_step=np.inf, force=None):
+             points_per_cycle=400, max_step=np.inf, force=None,
+             position_force=None):
     """Integrate piecewise between drive edges.
 
     Returns (y_end, t_window, x_window): the final state (accumulators hold
@@ -491,10 +507,11 @@ def simulate(config, mass, damping, freq, drive="A", phase=0.0, cycles=100,
     """
     _check_drive(config, drive)
     p = _params(params)
-    rhs = make_rhs(config, mass, damping, p, force=force)
-    y = initial_state(config, p)
+    rhs = make_rhs(config, mass, damping, p, force=force, position_force=position_force)
+    y = initial_state(config, p, position_force)
     scales = state_scales(config)
-    if force is not None:
+    extra = force is not None or position_force is not None
+    if extra:
         y = np.append(y, 0.0)
         scales = np.append(scales, 1e-4)
     if atol is None:
@@ -555,7 +572,7 @@ def simulate(config, mass, damping, freq, drive="A", phase=0.0, cycles=100,
 def reference_metrics(config, mass, damping, freq, drive="A", phase=0.0,
                       cycles=100, average=5, rtol=1e-9, atol=None,
                       method="LSODA", params=None, points_per_cycle=400,
-                      max_step=np.inf, force=None):
+                      max_step=np.inf, force=None, position_force=None):
     """Power metrics over the last `average` of `cycles` drive cycles.
 
     config: 'scdea_ls' | 'dcdea_rr' | 'dcdea_ls'; mass = payload M (kg);
@@ -566,20 +583,23 @@ def reference_metrics(config, mass, damping, freq, drive="A", phase=0.0,
     P_in_signed, efficiency = P_out / P_in, amplitude = (max - min)/2 of the
     payload displacement (sampled at points_per_cycle), v_rms.
     force: optional payload force law f(v) (N) instead of ``damping * v``
-    (pass damping=0); P_out is then mean(f(v) v).
+    (pass damping=0); P_out is then mean(f(v) v). position_force: a
+    conservative payload force g(x) (see :func:`make_rhs`), not in P_out.
     """
     y, t_w, x_w = simulate(config, mass, damping, freq, drive=drive,
                            phase=phase, cycles=cycles, average=average,
                            rtol=rtol, atol=atol, method=method,
                            params=params, points_per_cycle=points_per_cycle,
-                           max_step=max_step, force=force)
+                           max_step=max_step, force=force,
+                           position_force=position_force)
     _, _, iacc = _LAYOUT[config]
     Tw = average / freq
-    acc = y[iacc:] if force is None else y[iacc:-1]
+    extra = force is not None or position_force is not None
+    acc = y[iacc:] if not extra else y[iacc:-1]
     mean_v2 = acc[0] / Tw
     e_signed = acc[1::2].sum()
     e_pos = acc[2::2].sum()
-    P_out = damping * mean_v2 if force is None else y[-1] / Tw
+    P_out = damping * mean_v2 if not extra else y[-1] / Tw
     P_in = e_pos / Tw
     return {
         "P_out": float(P_out),

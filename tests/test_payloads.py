@@ -1,5 +1,5 @@
-"""Payload laws (issue 17): jaxdea.Drag against the independent scipy transcription, and the
-linear dashpot (damping=c, jaxdea.LinearViscous) unchanged bit for bit.
+"""Payload laws (issue 17): jaxdea.Drag, Elastic and Gravity against the independent scipy
+transcription, and the linear dashpot (damping=c, jaxdea.LinearViscous) unchanged bit for bit.
 
 Every law and configuration runs through ``jaxdea.sweep(payload=...)`` and through
 ``scipy_reference.reference_metrics(force=f)`` (LSODA, rtol 1e-9) with the same protocol: 20
@@ -164,3 +164,86 @@ def test_simulate_takes_a_payload_law(models):
     assert b.attrs["payload"] == "Drag" and a.attrs["damping"] == C
     with pytest.raises(jaxdea.SweepError, match="not both"):
         jaxdea.simulate(models["scdea_ls"], damping=C, payload=jaxdea.Drag(MASS), **kw)
+
+
+# Loads that push on the disk at rest: a preloaded spring to ground, a weight. Each is summed
+# with a linear dashpot (the power goes somewhere); the scipy side gets the same forces as
+# f(v) (dissipative) + g(x) (conservative, x = the payload dof's signed deflection).
+K_P, PRELOAD = 300.0, 0.05  # N/m, N
+HEAVY = 20e-3  # kg: a weight of 0.196 N moves P_out by a few % (2 g: ~1 %)
+G = 9.80665
+
+
+def _anchor(cfg):
+    eq = ref.static_equilibrium(cfg)
+    return eq["d"] if cfg == "scdea_ls" else eq["d_B"]
+
+
+def _loaded_cases(cfg):
+    """(label, jaxdea law, mass, scipy f(v), scipy g(x)) of the loaded payloads."""
+    xa = _anchor(cfg)
+    cases = [("elastic", jaxdea.Drag(MASS, linear=C) + jaxdea.Elastic(
+        stiffness=K_P, preload=PRELOAD), MASS, lambda v: C * v,
+        lambda x: PRELOAD + K_P * (x - xa))]
+    for tilt in (0.0, np.pi):  # payload hanging below the actuator / sitting on top
+        cases.append((f"gravity tilt={tilt:.3g}", jaxdea.Drag(HEAVY, linear=C) + jaxdea.Gravity(
+            tilt=tilt), HEAVY, lambda v: C * v,
+            lambda x, t=tilt: -HEAVY * G * np.cos(t)))
+    return cases
+
+
+@pytest.mark.parametrize("cfg", CONFIGS)
+def test_loaded_payloads_match_scipy_reference(models, cfg):
+    """Elastic and Gravity loads (rest state solved with them on) against scipy, within 0.5 %
+    on P_out and P_in; springs and weights are not output power (P_out = mean c v^2)."""
+    failures, worst = [], {}
+    moved = []
+    for label, law, mass, force, position_force in _loaded_cases(cfg):
+        # the rest state with the load on: jaxdea's Newton against scipy's fsolve
+        eq = ref.static_equilibrium(cfg, position_force=position_force)
+        rest = np.asarray(models[cfg].actuator.initial_state(
+            jaxdea.payloads.anchored(law, _anchor(cfg))).q)
+        want = [eq["d"]] if cfg == "scdea_ls" else (
+            [eq["d_B"]] if cfg == "dcdea_rr" else [eq["d_A"], eq["d_B"]])
+        np.testing.assert_allclose(rest, want, rtol=1e-9, atol=1e-14, err_msg=label)
+        moved.append(abs(rest[-1] - _anchor(cfg)))
+        ds = jaxdea.sweep(models[cfg], payload=law, freq=list(FREQS), cycles=CYCLES,
+                          average=AVERAGE)
+        assert np.all(ds.status.values == 0), label
+        assert np.all(ds.P_out.values > 0.0), (label, ds.P_out.values)
+        for i, f in enumerate(FREQS):
+            r = ref.reference_metrics(cfg, mass, 0.0, f, cycles=CYCLES, average=AVERAGE,
+                                      rtol=1e-9, method="LSODA", force=force,
+                                      position_force=position_force)
+            for name in ("P_out", "P_in"):
+                got = float(ds[name].values[i])
+                err = _rel(got, r[name])
+                worst[(label, name)] = max(worst.get((label, name), 0.0), err)
+                if not err <= RTOL_POWER:
+                    failures.append(f"{label} {name} at {f:g} Hz: jaxdea {got:.6g} vs "
+                                    f"scipy {r[name]:.6g} (rel err {err:.3%})")
+    print(f"\n[{cfg}] max rel err: "
+          + ", ".join(f"{law} {name} {v:.2e}" for (law, name), v in worst.items()))
+    assert not failures, "; ".join(failures)
+    assert min(moved) > 1e-6, moved  # every load moved the rest state (the test can fail)
+
+
+def test_conservative_laws_dissipate_nothing():
+    """Springs and weights return what they store: no output power; the forces add."""
+    v = np.linspace(-1.0, 1.0, 7)
+    law = jaxdea.Drag(MASS, linear=C) + jaxdea.Elastic(stiffness=K_P, preload=PRELOAD,
+                                                        anchor=0.004) + jaxdea.Gravity(tilt=0.5)
+    np.testing.assert_allclose(law.dissipated_power(v), C * v * v, rtol=1e-15)
+    np.testing.assert_allclose(law.force(0.005, v),
+                               C * v + PRELOAD + K_P * 0.001 - MASS * G * np.cos(0.5),
+                               rtol=1e-14)
+    assert law.mass == MASS and law.loads_at_rest and not jaxdea.Drag(MASS).loads_at_rest
+    with pytest.raises(ValueError, match="at most one law of each type"):
+        jaxdea.Drag(MASS) + jaxdea.Drag(MASS)
+
+
+def test_too_heavy_a_payload_is_refused(models):
+    """A weight the actuator cannot hold: one clear line before any compute."""
+    with pytest.raises(jaxdea.SweepError, match="no static equilibrium with this payload"):
+        jaxdea.sweep(models["scdea_ls"], payload=jaxdea.Drag(10.0, linear=C) + jaxdea.Gravity(),
+                     freq=[50.0], cycles=2, average=1)

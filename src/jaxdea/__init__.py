@@ -31,7 +31,8 @@ from ._checks import (CalibrationError, ConfigError, DataError, FieldWarning,  #
 # leaves
 from .materials import GentKelvinChain, GentMaxwell, GentSpringDashpot  # noqa: E402
 from .membrane import ConeMembrane  # noqa: E402
-from .payloads import Drag, LinearViscous  # noqa: E402
+from . import payloads  # noqa: E402
+from .payloads import Combined, Drag, Elastic, Gravity, LinearViscous, PayloadLaw  # noqa: E402
 from .signals import MultiSine, Sine, SquareWave, TriangularPattern, voltage_pattern  # noqa: E402
 from .solver import LawsonRK4, SemilinearTerm  # noqa: E402
 
@@ -73,9 +74,9 @@ __all__ = [
     # errors
     "CalibrationError", "ConfigError", "DataError", "FieldWarning", "JaxdeaError", "SweepError",
     # leaves
-    "ConeMembrane", "Drag", "GentKelvinChain", "GentMaxwell", "GentSpringDashpot", "LawsonRK4",
-    "LinearViscous", "MultiSine", "SemilinearTerm", "Sine", "SquareWave", "TriangularPattern",
-    "voltage_pattern",
+    "Combined", "ConeMembrane", "Drag", "Elastic", "GentKelvinChain", "GentMaxwell",
+    "GentSpringDashpot", "Gravity", "LawsonRK4", "LinearViscous", "MultiSine", "PayloadLaw", "SemilinearTerm", "Sine", "SquareWave", "TriangularPattern",
+    "payloads", "voltage_pattern",
     # models
     "ConeActuator", "ConeState", "DCDEA_LS", "DCDEA_RR", "Loading", "MassCone", "Model",
     "PlanarDEA", "RotaryDCDEA", "SCDEA_LS", "gu2017", "huang2020", "nouhi_kelvin",

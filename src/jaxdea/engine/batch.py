@@ -16,7 +16,7 @@ import numpy as np
 
 from .._checks import ConfigError, SweepError, check_choice, check_early_exit, check_protocol
 from ..models.cone import Loading, Model
-from .lanes import run_protocol
+from .lanes import rest_states, run_protocol
 from .metrics import CycleMetrics
 from .protocols import DIRECTIONS, EARLY_EXIT, PROTOCOLS, Protocol, as_keywords
 from .sharding import cell_sharded
@@ -24,11 +24,7 @@ from .step_control import StepControl
 
 _run = eqx.filter_jit(run_protocol)
 
-@eqx.filter_jit
-def _rest_states(actuator, n: int):
-    """The rest state (static equilibrium) repeated for ``n`` cells (compiled once)."""
-    rest = actuator.initial_state()
-    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), rest)
+_rest_states = eqx.filter_jit(rest_states)
 
 
 def run_from_rest(actuator, loadings, successor, *, cycles, average, control, lanes,
@@ -140,7 +136,7 @@ def _run_engine(model, loadings, cycles, average, control, lanes, initial, succe
     constants."""
     n = loadings.drive.frequency.shape[0]
     if initial is None:
-        initial = _rest_states(model.actuator, n)
+        initial = _rest_states(model.actuator, loadings)
     return _run(model.actuator, loadings, cycles=jnp.asarray(cycles, jnp.int32),
                 average=jnp.asarray(average, jnp.int32), control=control, lanes=lanes,
                 initial=initial, successor=jnp.asarray(successor, jnp.int32),

@@ -145,6 +145,17 @@ def lane_pools(n_lanes: int, strict: bool = False) -> tuple[int, ...]:
     return (n_lanes, 8)
 
 
+def rest_states(model, loadings: Loading) -> ConeState:
+    """The rest state of every cell (leading axis = cells): the static equilibrium with the
+    cell's payload on (:meth:`~jaxdea.models.cone.ConeActuator.initial_state`). Without a
+    payload that loads the disk at rest every cell rests at the same state."""
+    n = jax.tree_util.tree_leaves(loadings)[0].shape[0]
+    if not loadings.payload.loads_at_rest:
+        rest = model.initial_state()
+        return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), rest)
+    return jax.vmap(model.initial_state)(loadings.payload)
+
+
 def run_protocol(
     model: ConeActuator,
     loadings: Loading,
@@ -215,6 +226,8 @@ def run_protocol(
     solver = LawsonRK4()
     controller = IController(rtol=control.rtol, dt_max=control.dt_max)
     term = SemilinearTerm(model.vector_field, model.linearisation)
+    if initial is None and loadings.payload.loads_at_rest:  # a weight or a preloaded spring
+        initial = rest_states(model, loadings)
     y0 = model.initial_state()
 
     succ = (jnp.full(n_cells, n_cells, jnp.int32) if successor is None

@@ -37,7 +37,7 @@ import numpy as np
 
 from ..models.cone import ConeState
 from .batch import driven_membranes
-from .lanes import run_protocol
+from .lanes import rest_states, run_protocol
 from .periodic import (
     STABLE_MULTIPLIER,
     flatten_dynamical,
@@ -281,8 +281,8 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
 
 @eqx.filter_jit
 def _rest(build, theta):
-    """Rest state (static equilibrium) of every design: leaves ``(K, ...)``."""
-    return jax.vmap(lambda b, th: b(th)[0].initial_state())(build, theta)
+    """Rest state (static equilibrium) of every cell of every design: leaves ``(K, C, ...)``."""
+    return jax.vmap(lambda b, th: rest_states(*b(th)))(build, theta)
 
 
 def _with_rest(build, theta, initial):
@@ -294,7 +294,7 @@ def _with_rest(build, theta, initial):
     rest = _host(_rest(build, jnp.asarray(theta)))
     return jax.tree_util.tree_map(
         lambda a, r: np.where(bad.reshape(bad.shape + (1,) * (a.ndim - 2)),
-                              np.broadcast_to(r[:, None], a.shape), a), initial, rest)
+                              r, a), initial, rest)
 
 
 def _trim(tree, k: int):

@@ -19,7 +19,7 @@ from jaxtyping import Array, ArrayLike
 
 from ..electrical import charge_rate
 from ..membrane import BREAKDOWN_FIELD, ConeMembrane
-from ..payloads import Drag, LinearViscous
+from ..payloads import PayloadLaw
 from ..signals import SquareWave
 from ..solver import Linearisation, exp_decay_weights
 
@@ -118,7 +118,7 @@ class Loading(eqx.Module):
     """Everything outside the actuator: the drive voltages and the payload."""
 
     drive: SquareWave
-    payload: LinearViscous | Drag
+    payload: PayloadLaw
 
 
 class ConeActuator(eqx.Module):
@@ -148,7 +148,7 @@ class ConeActuator(eqx.Module):
 
     @abc.abstractmethod
     def accelerations(self, q: Array, v: Array, membrane_forces: Array,
-                      payload: LinearViscous | Drag) -> Array:
+                      payload: PayloadLaw) -> Array:
         """Equations of motion (paper 000 eqs 16-18): ``q''`` from the membrane forces."""
 
     @abc.abstractmethod
@@ -160,19 +160,38 @@ class ConeActuator(eqx.Module):
         """A starting point for the static-equilibrium Newton solve (not the answer)."""
 
     # --- shared -----------------------------------------------------------------------------
-    def equilibrium(self, iterations: int = 40) -> Array:
+    def equilibrium(self, iterations: int = 40, payload: PayloadLaw | None = None) -> Array:
         """Static equilibrium positions at zero voltage, by Newton's method on
-        :meth:`static_forces` (differentiable; fixed iteration count so it jits and vmaps)."""
+        :meth:`static_forces` (differentiable; fixed iteration count so it jits and vmaps).
 
-        def newton(_, q):
-            jac = jax.jacfwd(self.static_forces)(q)
-            return q - solve_small(jac, self.static_forces(q))
+        With a ``payload`` that loads the disk at rest (``payload.loads_at_rest``: a weight,
+        a preloaded spring) its force at zero velocity is included; the Newton solve then
+        starts from the equilibrium without it."""
 
-        return jax.lax.fori_loop(0, iterations, newton, self.static_guess())
+        def solve(forces, q):
+            def newton(_, q):
+                jac = jax.jacfwd(forces)(q)
+                return q - solve_small(jac, forces(q))
 
-    def initial_state(self) -> ConeState:
-        """At rest at the static equilibrium, uncharged, Maxwell branches relaxed."""
-        q = self.equilibrium()
+            return jax.lax.fori_loop(0, iterations, newton, q)
+
+        q = solve(self.static_forces, self.static_guess())
+        if payload is None or not payload.loads_at_rest:
+            return q
+        unit = jnp.zeros(self.n_dof, q.dtype).at[self.payload_dof].set(1.0)
+        x = lambda q: q[self.payload_dof]  # noqa: E731
+        return solve(lambda q: self.static_forces(q) - unit * payload.force(
+            x(q), jnp.zeros_like(x(q))), q)
+
+    def rest_position(self) -> Array:
+        """The payload dof's position at the zero-voltage equilibrium without payload, m
+        (where an :class:`~jaxdea.Elastic` load without ``anchor`` is anchored)."""
+        return self.equilibrium()[self.payload_dof]
+
+    def initial_state(self, payload: PayloadLaw | None = None) -> ConeState:
+        """At rest at the static equilibrium (with ``payload``'s force at rest, if any),
+        uncharged, Maxwell branches relaxed."""
+        q = self.equilibrium(payload=payload)
         d = self.deflections(q)
         xi_m, xi_el = self.membrane.relaxed_dashpots(d)
         zeros = jnp.zeros(self.n_membranes, dtype=q.dtype)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from ..membrane import ConeMembrane
-from ..payloads import Drag, LinearViscous
+from ..payloads import PayloadLaw
 from .cone import ConeActuator
 
 
@@ -34,8 +34,8 @@ class DCDEA_RR(ConeActuator):
     def deflections(self, q):
         return jnp.concatenate([q - self.rod_length, q])
 
-    def accelerations(self, q, v, membrane_forces, payload: LinearViscous | Drag):
-        force = jnp.sum(membrane_forces) - payload.resisting_force(v)
+    def accelerations(self, q, v, membrane_forces, payload: PayloadLaw):
+        force = jnp.sum(membrane_forces) - payload.force(q, v)
         return force / (2.0 * self.disk_mass + payload.mass)
 
     def static_forces(self, q):
@@ -75,10 +75,10 @@ class DCDEA_LS(ConeActuator):
     def deflections(self, q):
         return q
 
-    def accelerations(self, q, v, membrane_forces, payload: LinearViscous | Drag):
+    def accelerations(self, q, v, membrane_forces, payload: PayloadLaw):
         fp = self.spring_force(q)
         acc_a = (membrane_forces[0] - fp) / self.disk_mass
-        acc_b = (membrane_forces[1] + fp - payload.resisting_force(v[1])) / (
+        acc_b = (membrane_forces[1] + fp - payload.force(q[1], v[1])) / (
             self.disk_mass + payload.mass
         )
         return jnp.stack([acc_a, acc_b])

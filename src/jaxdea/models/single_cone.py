@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from ..membrane import ConeMembrane
-from ..payloads import Drag, LinearViscous
+from ..payloads import PayloadLaw
 from .cone import ConeActuator
 
 
@@ -42,8 +42,8 @@ class SCDEA_LS(ConeActuator):
     def deflections(self, q):
         return q
 
-    def accelerations(self, q, v, membrane_forces, payload: LinearViscous | Drag):
-        force = membrane_forces + self.spring_force(q) - payload.resisting_force(v)
+    def accelerations(self, q, v, membrane_forces, payload: PayloadLaw):
+        force = membrane_forces + self.spring_force(q) - payload.force(q, v)
         return force / (self.disk_mass + payload.mass)
 
     def static_forces(self, q):

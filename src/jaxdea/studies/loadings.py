@@ -14,12 +14,12 @@ import numpy as np
 
 from .._checks import ConfigError, FieldWarning, SweepError, check_choice, finite_array
 from ..models.cone import Loading, Model
-from ..payloads import Drag, LinearViscous
+from ..payloads import Combined, Drag, Elastic, Gravity, LinearViscous, PayloadLaw, anchored, parameters
 from ..signals import SquareWave
 
 DRIVES = ("A", "B", "both")
-#: The payload laws the cone studies take as ``payload=``.
-PAYLOAD_LAWS = (LinearViscous, Drag)
+#: The payload laws the cone studies take as ``payload=`` (and their sums).
+PAYLOAD_LAWS = (LinearViscous, Drag, Elastic, Gravity, Combined)
 
 
 def check_cone_model(model) -> None:
@@ -84,15 +84,16 @@ def drive_pattern(model: Model, drive: str, phase: float) -> tuple[np.ndarray, n
 
 def payload_parameters(payload) -> dict[str, float]:
     """The law's name and parameters (SI), for a Dataset's attrs: ``{"payload": "Drag",
-    "payload_linear": ..., ...}`` (the mass is recorded separately, as ``mass``)."""
-    out: dict = {"payload": type(payload).__name__}
-    for f in dataclasses.fields(payload):
-        if f.name != "mass":
-            out[f"payload_{f.name}"] = float(np.asarray(getattr(payload, f.name)))
+    "payload_linear": ..., ...}`` (a sum: ``"Drag + Gravity"``; the mass is recorded
+    separately, as ``mass``; an axis parameter is left out: it is a coordinate)."""
+    out: dict = {"payload": " + ".join(type(law).__name__ for law in payload.laws)}
+    for name, value in parameters(payload).items():
+        if value is not None and np.ndim(value) == 0:
+            out[f"payload_{name}"] = float(np.asarray(value))
     return out
 
 
-def check_payload(mass, damping, payload):
+def check_payload(mass, damping, payload, axes: bool = False):
     """Validate the payload of a cone study, before any compute.
 
     **Arguments:**
@@ -100,7 +101,8 @@ def check_payload(mass, damping, payload):
     - `mass`: payload mass, kg, or ``None`` to take the payload law's own ``mass``.
     - `damping`: the linear dashpot's ``c`` (N s/m), shorthand for
       :class:`~jaxdea.LinearViscous`; ``None`` when `payload` is given.
-    - `payload`: a payload law (:data:`PAYLOAD_LAWS`) or ``None``.
+    - `payload`: a payload law (:data:`PAYLOAD_LAWS`, or a sum of them) or ``None``.
+    - `axes`: whether one law parameter may be a 1-D axis (a power map's second axis).
 
     **Returns:**
 
@@ -121,37 +123,74 @@ def check_payload(mass, damping, payload):
                          "both: put the damping into the payload law")
     if not isinstance(payload, PAYLOAD_LAWS):
         raise SweepError("payload must be a payload law ("
-                         + ", ".join(f"jaxdea.{c.__name__}" for c in PAYLOAD_LAWS)
-                         + f"), got {type(payload).__name__}")
-    for f in dataclasses.fields(payload):
-        value = getattr(payload, f.name)
-        if np.ndim(value) != 0:
-            raise SweepError(f"payload.{f.name} must be a scalar, got shape {np.shape(value)}")
-        finite_array(f"payload.{f.name}", value, nonnegative=True,
-                     positive=f.name in payload.positive_fields)
+                         + ", ".join(f"jaxdea.{c.__name__}" for c in PAYLOAD_LAWS[:-1])
+                         + f", or a sum of them with +), got {type(payload).__name__}")
+    n_axes = 0
+    for law in payload.laws:
+        for f in dataclasses.fields(law):
+            value = getattr(law, f.name)
+            where = f"payload.{f.name}" if len(payload.laws) == 1 else (
+                f"payload {type(law).__name__}.{f.name}")
+            if value is None and f.name == "anchor":
+                continue
+            is_axis = axes and f.name != "mass" and np.ndim(value) == 1
+            n_axes += is_axis
+            if np.ndim(value) != 0 and not is_axis:
+                raise SweepError(f"{where} must be a scalar, got shape {np.shape(value)}"
+                                 + (" (a power map takes one law parameter as a 1-D axis)"
+                                    if axes else " (use powermap for an axis)"))
+            finite_array(where, value, nonnegative=f.name not in law.signed_fields,
+                         positive=f.name in law.positive_fields)
+    if n_axes > 1:
+        raise SweepError("payload: at most one law parameter may be an axis (1-D array), "
+                         f"got {n_axes}")
     law_mass = float(np.asarray(payload.mass))
     if mass is None:
         mass = law_mass
     mass = finite_array("mass", mass, nonnegative=True)
-    if np.any(mass != law_mass):
+    if np.any(mass != law_mass) and law_mass != 0.0:
         raise SweepError(f"mass = {mass.tolist()} kg differs from payload.mass = {law_mass:g} "
                          "kg: give the payload mass once (drop mass=, or make them equal)")
     return mass, None, payload
 
 
-def cell_payload(payload, mass, n: int):
-    """``payload`` (scalar parameters) for ``n`` cells with masses ``mass`` ``(n,)``, kg."""
-    leaves = {f.name: jnp.broadcast_to(jnp.asarray(getattr(payload, f.name), dtype=float),
-                                       (n,)) for f in dataclasses.fields(payload)}
-    leaves["mass"] = jnp.asarray(mass)
-    return type(payload)(**leaves)
+def cell_payload(payload, mass, n: int, **values):
+    """``payload`` (scalar parameters) for ``n`` cells with masses ``mass`` ``(n,)``, kg, and
+    any law parameter given in ``values`` as an ``(n,)`` array."""
+    from ..payloads import replace_parameters
+
+    cells = jax.tree_util.tree_map(
+        lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)),
+        replace_parameters(payload, **{k: 0.0 for k in values}) if values else payload)
+    if values:
+        cells = replace_parameters(cells, **{k: jnp.asarray(v, dtype=float)
+                                             for k, v in values.items()})
+    return cells.with_mass(jnp.asarray(mass))
 
 
-def cell_loadings(amplitude, frequency, duty, phase, mass, damping, payload=None) -> Loading:
+@eqx.filter_jit
+def _rest_position(actuator) -> jax.Array:
+    return actuator.rest_position()
+
+
+def anchor_payload(model: Model, payload):
+    """``payload`` with an :class:`~jaxdea.Elastic` law's unset anchor at the actuator's rest
+    position without payload (m; traced when the model is)."""
+    if payload is None or "anchor" not in parameters(payload) or parameters(
+            payload)["anchor"] is not None:
+        return payload
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(model))
+    return anchored(payload, model.actuator.rest_position() if traced
+                    else float(_rest_position(model.actuator)))
+
+
+def cell_loadings(amplitude, frequency, duty, phase, mass, damping, payload=None,
+                  **values) -> Loading:
     """Loadings of ``n`` cells from per-cell arrays: ``amplitude`` and ``phase`` ``(n,
     n_membranes)`` (V, rad), ``frequency``, ``mass``, ``damping`` ``(n,)`` (Hz, kg, N s/m),
     ``duty`` a scalar. With a payload law ``payload`` (checked, scalar parameters),
-    ``damping`` is ignored and every cell gets that law with its ``mass``."""
+    ``damping`` is ignored and every cell gets that law with its ``mass`` and the per-cell
+    law parameters ``values`` (``(n,)`` arrays, e.g. ``quadratic=...``)."""
     n = np.shape(frequency)[0]
     return Loading(
         drive=SquareWave(
@@ -161,8 +200,40 @@ def cell_loadings(amplitude, frequency, duty, phase, mass, damping, payload=None
             phase=jnp.asarray(phase),
         ),
         payload=(LinearViscous(mass=jnp.asarray(mass), damping=jnp.asarray(damping))
-                 if payload is None else cell_payload(payload, mass, n)),
+                 if payload is None else cell_payload(payload, mass, n, **values)),
     )
+
+
+@eqx.filter_jit
+def _rest_checks(actuator, payload):
+    """Per cell: (payload position at rest, smallest Gent margin at rest) with ``payload``
+    (leaves ``(n,)``) on."""
+    def one(law):
+        y = actuator.initial_state(law)
+        return y.q[actuator.payload_dof], actuator.lockup_margin(y)
+
+    return jax.vmap(one)(payload)
+
+
+def check_rest(model: Model, payload) -> None:
+    """:class:`~jaxdea.SweepError` when a payload that loads the disk at rest (a weight, a
+    preloaded spring; ``payload`` with leaves ``(n,)``) leaves the actuator no static
+    equilibrium: the Newton solve diverges or a membrane is locked up (Gent limit) at rest.
+    Nothing is checked for other payloads or while the model is traced."""
+    if payload is None or not payload.loads_at_rest or any(
+            isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((model, payload))):
+        return
+    x, margin = (np.asarray(a) for a in _rest_checks(model.actuator, payload))
+    bad = ~(np.isfinite(x) & np.isfinite(margin) & (margin > 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        load = float(np.asarray(payload.force(x[i] if np.isfinite(x[i]) else 0.0, 0.0))[i])
+        raise SweepError(
+            f"payload: the actuator has no static equilibrium with this payload at rest "
+            f"({int(bad.sum())} of {bad.size} cells; e.g. mass {float(payload.mass[i]):g} kg, "
+            f"force at rest {load:.4g} N against +x): the membrane locks up or the load "
+            "exceeds what it can hold; lower the weight (mass, Gravity.tilt) or the spring's "
+            "preload")
 
 
 def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
@@ -176,9 +247,11 @@ def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
     - `mass`, `damping`, `freq`: payload mass (kg, >= 0), damping (N s/m, >= 0) and drive
       frequency (Hz, > 0), broadcast against each other.
     - `drive`: ``"A"``, ``"B"`` or ``"both"``; `phase`: B's delay with ``"both"``, rad.
-    - `payload`: a payload law (:class:`~jaxdea.Drag`, :class:`~jaxdea.LinearViscous`) with
-      scalar parameters, instead of `damping` (then ``damping=None``; `mass` may be ``None``
-      to use the law's mass). ``damping=c`` is the shorthand for ``LinearViscous``.
+    - `payload`: a payload law (:class:`~jaxdea.Drag`, :class:`~jaxdea.Elastic`,
+      :class:`~jaxdea.Gravity`, ... or a sum of them) with scalar parameters, instead of
+      `damping` (then ``damping=None``; `mass` may be ``None`` to use the law's mass).
+      ``damping=c`` is the shorthand for ``LinearViscous``. An :class:`~jaxdea.Elastic`
+      law without ``anchor`` is anchored at the actuator's rest position.
 
     **Returns:**
 
@@ -186,6 +259,7 @@ def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
     as their leading axis.
     """
     mass, damping, payload = check_payload(mass, damping, payload)
+    payload = anchor_payload(model, payload)
     freq = finite_array("freq", freq, positive=True)
     on, phases = drive_pattern(model, drive, float(phase))
     m, c, f = (a.ravel() for a in np.broadcast_arrays(
@@ -193,24 +267,35 @@ def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
     n = f.size
     # jnp arithmetic on the model's voltage and duty: they may be traced (calibration)
     amp = jnp.broadcast_to(jnp.asarray(on)[None, :] * model.voltage, (n, on.size))
-    return cell_loadings(amp, f, model.duty, jnp.broadcast_to(jnp.asarray(phases), (n, on.size)),
-                         m, c, payload)
+    loadings = cell_loadings(amp, f, model.duty, jnp.broadcast_to(jnp.asarray(phases),
+                                                                   (n, on.size)), m, c, payload)
+    check_rest(model, loadings.payload)
+    return loadings
 
 
 @dataclass
 class Grid:
     """A validated (M, c, f[, phase]) grid and its drive: builds the loadings of any range of
-    flat (C-order) cell indices, the same values as :func:`make_loadings`."""
+    flat (C-order) cell indices, the same values as :func:`make_loadings`. With a payload law
+    the second axis is one of its parameters (``law_axis``, e.g. ``"quadratic"``) instead of
+    the linear dashpot's ``c``."""
 
     axes: dict  # name -> 1-D numpy axis, in output order
     shape: tuple
     amplitude: np.ndarray  # (n_phase, n_membranes), V
     phases: np.ndarray  # (n_phase, n_membranes), rad
     duty: float
+    payload: PayloadLaw | None = None  # anchored; law_axis's parameter is the axis
+    law_axis: str = "c"
 
     def loadings(self, idx: np.ndarray) -> Loading:
         """Loadings of flat (C-order) cells ``idx``."""
         full = self.shape if len(self.shape) == 4 else self.shape + (1,)
         im, ic, jf, jp = np.unravel_index(idx, full)
+        second = self.axes[self.law_axis][ic]
+        if self.payload is None:
+            return cell_loadings(self.amplitude[jp], self.axes["f"][jf], self.duty,
+                                 self.phases[jp], self.axes["M"][im], second)
         return cell_loadings(self.amplitude[jp], self.axes["f"][jf], self.duty,
-                             self.phases[jp], self.axes["M"][im], self.axes["c"][ic])
+                             self.phases[jp], self.axes["M"][im], 0.0, self.payload,
+                             **{self.law_axis: second})
