@@ -75,7 +75,8 @@ __all__ = [
     "CalibrationError", "ConfigError", "DataError", "FieldWarning", "JaxdeaError", "SweepError",
     # leaves
     "Combined", "ConeMembrane", "Drag", "Elastic", "GentKelvinChain", "GentMaxwell",
-    "GentSpringDashpot", "Gravity", "LawsonRK4", "LinearViscous", "MultiSine", "PayloadLaw", "SemilinearTerm", "Sine", "SquareWave", "TriangularPattern",
+    "GentSpringDashpot", "Gravity", "LawsonRK4", "LinearViscous", "MultiSine", "PayloadLaw",
+    "SemilinearTerm", "Sine", "SquareWave", "TriangularPattern",
     "payloads", "voltage_pattern",
     # models
     "ConeActuator", "ConeState", "DCDEA_LS", "DCDEA_RR", "Loading", "MassCone", "Model",

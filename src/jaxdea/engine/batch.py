@@ -134,7 +134,6 @@ def _run_engine(model, loadings, cycles, average, control, lanes, initial, succe
     """The lane engine on one device. One compiled engine for paper and continuation runs of
     any cycle count: the start states, successors and cycle counts are all arguments, not
     constants."""
-    n = loadings.drive.frequency.shape[0]
     if initial is None:
         initial = _rest_states(model.actuator, loadings)
     return _run(model.actuator, loadings, cycles=jnp.asarray(cycles, jnp.int32),

@@ -14,7 +14,16 @@ import numpy as np
 
 from .._checks import ConfigError, FieldWarning, SweepError, check_choice, finite_array
 from ..models.cone import Loading, Model
-from ..payloads import Combined, Drag, Elastic, Gravity, LinearViscous, PayloadLaw, anchored, parameters
+from ..payloads import (
+    Combined,
+    Drag,
+    Elastic,
+    Gravity,
+    LinearViscous,
+    PayloadLaw,
+    anchored,
+    parameters,
+)
 from ..signals import SquareWave
 
 DRIVES = ("A", "B", "both")

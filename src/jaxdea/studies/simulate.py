@@ -23,8 +23,8 @@ from .loadings import check_payload, make_loadings, payload_parameters, warn_bre
 def _solve(actuator, loading, ts):
     term = SemilinearTerm(actuator.vector_field, actuator.linearisation)
     sol = diffrax.diffeqsolve(
-        term, LawsonRK4(), t0=ts[0], t1=ts[-1], dt0=None, y0=actuator.initial_state(loading.payload),
-        args=loading, saveat=diffrax.SaveAt(ts=ts),
+        term, LawsonRK4(), t0=ts[0], t1=ts[-1], dt0=None,
+        y0=actuator.initial_state(loading.payload), args=loading, saveat=diffrax.SaveAt(ts=ts),
         stepsize_controller=diffrax.StepTo(ts=ts), max_steps=ts.shape[0],
     )
     obs = jax.vmap(lambda t, y: actuator.observables(t, y, loading))(sol.ts, sol.ys)
