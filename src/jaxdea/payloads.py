@@ -29,6 +29,21 @@ from jaxtyping import Array, ArrayLike
 #: Standard gravity, m/s^2.
 STANDARD_GRAVITY = 9.80665
 
+#: Units and descriptions of every payload parameter (the linear dashpot's ``c`` is ``c``).
+PARAMETER_UNITS = {
+    "c": ("N s/m", "payload damping c"),
+    "damping": ("N s/m", "payload damping c"),
+    "linear": ("N s/m", "viscous drag coefficient c"),
+    "quadratic": ("N s^2/m^2", "quadratic drag coefficient c2"),
+    "coulomb": ("N", "Coulomb friction force F_c"),
+    "coulomb_velocity": ("m/s", "Coulomb smoothing velocity v_s"),
+    "stiffness": ("N/m", "payload spring stiffness k_p"),
+    "preload": ("N", "payload spring preload"),
+    "anchor": ("m", "payload spring anchor position"),
+    "tilt": ("rad", "mounting tilt (0: payload hangs below)"),
+    "g": ("m/s^2", "gravitational acceleration"),
+}
+
 
 class PayloadLaw(eqx.Module):
     """Base class of the payload laws: a mass and a force, summable with ``+``.

@@ -12,6 +12,7 @@ import numpy as np  # noqa: E402
 import xarray as xr  # noqa: E402
 
 from .calibration import CalibrationResult, Data, FrequencyResponse  # noqa: E402
+from .payloads import PARAMETER_UNITS  # noqa: E402
 from .studies.optimise import OptimiseResult  # noqa: E402
 
 
@@ -104,37 +105,52 @@ def _save(fig, path, dpi: int = 130):
     return fig
 
 
+def law_dim(ds: xr.Dataset) -> str:
+    """The map's payload axis besides M: ``"c"`` (linear dashpot) or a law parameter."""
+    return next(str(d) for d in ds["P_out"].dims if d not in ("M", "f", "phase"))
+
+
+def _law_label(ds: xr.Dataset, k: str) -> str:
+    unit, name = PARAMETER_UNITS.get(k, ("", k))
+    return f"{name} ({unit})" if unit else name
+
+
 def plot_pmax(ds: xr.Dataset, path: str | Path | None = None):
-    """P_max (mW) over payload mass M (g) x damping c (N s/m), as paper 000 Fig 7.
+    """P_max (mW) over payload mass M (g) x damping c (N s/m) (or the map's payload-law
+    axis), as paper 000 Fig 7.
 
     Blank cells: no frequency of that payload finished with status 0. The largest P_max is
     marked with a star.
     """
+    k = law_dim(ds)
     pmax, note = _over_phase(ds["P_max"])
-    z = 1e3 * pmax.transpose("c", "M").values
-    m_g, c = 1e3 * ds["M"].values, ds["c"].values
+    z = 1e3 * pmax.transpose(k, "M").values
+    m_g, c = 1e3 * ds["M"].values, ds[k].values
     fig, ax = plt.subplots(figsize=(6.4, 5.0))
     _mc_mesh(ax, m_g, c, z, r"$P_{max}$ (mW)", fig)
     if np.isfinite(z).any():
         j, i = np.unravel_index(np.nanargmax(z), z.shape)
         ax.plot(m_g[i], c[j], "w*", ms=12, mec="k",
-                label=f"{np.nanmax(z):.2f} mW at M = {m_g[i]:.3g} g, c = {c[j]:.3g} N s/m")
+                label=f"{np.nanmax(z):.2f} mW at M = {m_g[i]:.3g} g, {k} = {c[j]:.3g} "
+                      f"{PARAMETER_UNITS.get(k, ('',))[0]}")
         ax.legend(loc="upper left", fontsize=7)
     ax.set_xlabel("payload mass M (g)")
-    ax.set_ylabel("payload damping c (N s/m)")
+    ax.set_ylabel(_law_label(ds, k))
     ax.set_title(f"{_map_title(ds)}{note}", fontsize=9)
     return _save(fig, path)
 
 
 def plot_pout_fc(ds: xr.Dataset, path: str | Path | None = None, mass: float | None = None):
-    """P_out (mW) over frequency f x damping c at the M nearest ``mass`` (kg), as Fig 9.
+    """P_out (mW) over frequency f x damping c (or the payload-law axis) at the M nearest
+    ``mass`` (kg), as Fig 9.
 
     ``mass=None``: the M of the largest P_max. Cells with status != 0 are blank; white dots
     mark f_at_P_max for each c.
     """
+    k = law_dim(ds)
     if mass is None:
         pm, _ = _over_phase(ds["P_max"])
-        vals = np.nan_to_num(pm.transpose("M", "c").values, nan=-np.inf)
+        vals = np.nan_to_num(pm.transpose("M", k).values, nan=-np.inf)
         i = int(np.unravel_index(np.argmax(vals), vals.shape)[0])
     else:
         if not np.isfinite(mass):
@@ -142,8 +158,8 @@ def plot_pout_fc(ds: xr.Dataset, path: str | Path | None = None, mass: float | N
         i = int(np.argmin(np.abs(ds["M"].values - mass)))
     sel = ds.isel(M=i)
     pout, note = _over_phase(sel["P_out"].where(sel["status"] == 0))
-    z = 1e3 * pout.transpose("c", "f").values
-    f, c = ds["f"].values, ds["c"].values
+    z = 1e3 * pout.transpose(k, "f").values
+    f, c = ds["f"].values, ds[k].values
     fig, ax = plt.subplots(figsize=(6.4, 5.0))
     _mc_mesh(ax, f, c, z, r"$P_{out}$ (mW)", fig, contours=True)
     ax.set_xscale("linear")
@@ -151,7 +167,7 @@ def plot_pout_fc(ds: xr.Dataset, path: str | Path | None = None, mass: float | N
         ax.plot(sel["f_at_P_max"].values, c, "w.", ms=5, label=r"$f$ at $P_{max}$")
         ax.legend(loc="upper right", fontsize=7)
     ax.set_xlabel("frequency f (Hz)")
-    ax.set_ylabel("payload damping c (N s/m)")
+    ax.set_ylabel(_law_label(ds, k))
     ax.set_title(f"{_map_title(ds)}, M = {1e3 * float(ds['M'][i]):.3g} g{note}", fontsize=9)
     return _save(fig, path)
 
@@ -162,7 +178,11 @@ def plot_pmax_ratio(ds: xr.Dataset, other: xr.Dataset, path: str | Path | None =
     The maps must share their M and c axes. The colour scale is logarithmic and centred on
     1 (the contour ``ratio = 1`` is drawn in black).
     """
-    for k in ("M", "c"):
+    law = law_dim(ds)
+    if law_dim(other) != law:
+        raise ValueError(f"--other: the maps have different payload axes ({law}, "
+                         f"{law_dim(other)}); a ratio needs the same payload grid")
+    for k in ("M", law):
         if ds[k].size != other[k].size or not np.allclose(ds[k].values, other[k].values,
                                                           rtol=1e-9, atol=0):
             raise ValueError(f"--other: the maps have different {k} axes; a ratio needs the "
@@ -170,9 +190,9 @@ def plot_pmax_ratio(ds: xr.Dataset, other: xr.Dataset, path: str | Path | None =
     a, note = _over_phase(ds["P_max"])
     b, _ = _over_phase(other["P_max"])
     with np.errstate(divide="ignore", invalid="ignore"):
-        r = (a / b.assign_coords(M=a["M"], c=a["c"])).transpose("c", "M").values
+        r = (a / b.assign_coords(M=a["M"], **{law: a[law]})).transpose(law, "M").values
     r = np.where(np.isfinite(r) & (r > 0), r, np.nan)
-    m_g, c = 1e3 * ds["M"].values, ds["c"].values
+    m_g, c = 1e3 * ds["M"].values, ds[law].values
     fig, ax = plt.subplots(figsize=(6.4, 5.0))
     norm = None
     if np.isfinite(r).any():
@@ -182,7 +202,7 @@ def plot_pmax_ratio(ds: xr.Dataset, other: xr.Dataset, path: str | Path | None =
     if min(r.shape) >= 2 and np.nanmin(r) < 1 < np.nanmax(r):
         ax.contour(m_g, c, np.ma.masked_invalid(r), levels=[1.0], colors="k", linewidths=1.0)
     ax.set_xlabel("payload mass M (g)")
-    ax.set_ylabel("payload damping c (N s/m)")
+    ax.set_ylabel(_law_label(ds, law))
     da, db = ds.attrs.get("drive", "?"), other.attrs.get("drive", "?")
     ax.set_title(f"P_max ratio: drive {da} / drive {db} ({ds.attrs.get('model', '')}){note}",
                  fontsize=9)

@@ -339,9 +339,10 @@ def open_map(path: str | os.PathLike) -> xr.Dataset:
     except Exception as exc:  # noqa: BLE001 - truncated, foreign or unreadable: one line
         raise SweepError(f"{path} is not a readable power map ({type(exc).__name__}: "
                          f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
-    missing = [k for k in ("M", "c", "f") if k not in ds.dims]
-    if missing or "P_out" not in ds:
+    missing = [k for k in ("M", "f") if k not in ds.dims]
+    if missing or "P_out" not in ds or len(set(ds.dims) - {"M", "f", "phase"}) != 1:
         what = "a frequency sweep (jaxdea sweep --plot draws it)" if set(ds.dims) == {"f"} \
             else f"no power map (dims {sorted(map(str, ds.dims))})"
-        raise SweepError(f"{path} is {what}: a map has dims M, c, f and P_out")
+        raise SweepError(f"{path} is {what}: a map has dims M, c (or a payload parameter), f "
+                         "and P_out")
     return ds

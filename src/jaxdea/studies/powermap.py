@@ -51,6 +51,7 @@ from ..engine.metrics import STATUS
 from ..engine.protocols import Protocol, as_keywords
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
+from ..payloads import parameters
 from .distributed import (
     ChunkJob,
     check_client,
@@ -59,7 +60,18 @@ from .distributed import (
     run_chunk,
     run_on_cluster,
 )
-from .loadings import DRIVES, Grid, check_cone_model, drive_pattern, warn_breakdown
+from .loadings import (
+    DRIVES,
+    Grid,
+    anchor_payload,
+    cell_payload,
+    check_cone_model,
+    check_payload,
+    check_rest,
+    drive_pattern,
+    payload_parameters,
+    warn_breakdown,
+)
 from .mapstore import (
     Parts,
     StoreLock,
@@ -69,7 +81,7 @@ from .mapstore import (
     previous_chunk_cells,
     write_store,
 )
-from .sweep import VARIABLES, to_dataset
+from .sweep import P_OUT_MEANING, VARIABLES, to_dataset
 
 #: Default chunk size per device: large enough that the lane pools stay busy while a
 #: low-frequency cell that never settles runs its 100 cycles (~3e5 steps at 1 Hz, against
@@ -109,7 +121,8 @@ def _check_size(shape: tuple[int, ...], dims: tuple[str, ...], store: Path | Non
     n = math.prod(shape)
     need = n * _BYTES_PER_CELL
     grid = " x ".join(f"{d} {s}" for d, s in zip(dims, shape))
-    args = "/".join({"M": "mass", "c": "damping", "f": "freq"}.get(d, d) for d in dims)
+    args = "/".join({"M": "mass", "c": "damping", "f": "freq"}.get(d, f"payload.{d}")
+                    if d != "phase" else d for d in dims)
     mem = _available_memory()
     if 3 * need > mem:  # results + Dataset copy + writer buffers
         raise SweepError(f"grid {grid} = {n} cells needs ~{3 * need / 2**30:.1f} GiB of memory "
@@ -136,6 +149,14 @@ def _model_settings(model: Model) -> dict[str, Any]:
 _run_chunk = run_chunk  # one chunk in this process (tests replace it)
 
 
+def _signed(payload) -> set[str]:
+    return {n for law in payload.laws for n in law.signed_fields}
+
+
+def _positive(payload) -> set[str]:
+    return {n for law in payload.laws for n in law.positive_fields}
+
+
 def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
     """P_max and f_at_P_max over f, among cells with status 0 that are steady (NaN where none
     is; a Dataset without ``steady``, e.g. an older store, counts every cell as steady)."""
@@ -155,7 +176,8 @@ def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
     return ds
 
 
-def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
+def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None,
+             drive: str = "A",
              protocol: str | Protocol = "paper", cycles: int = 100, average: int = 5,
              direction: str = "forward", tol: float = 1e-6,
              early_exit: float | None = EARLY_EXIT, control: StepControl = StepControl(),
@@ -165,6 +187,11 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     """Power map of ``model`` over payload mass x damping x frequency (x phase).
 
     ``mass`` (kg, >= 0), ``damping`` (N s/m, >= 0), ``freq`` (Hz, > 0): 1-D increasing axes.
+    ``payload``: a payload law (:class:`jaxdea.Drag`, :class:`jaxdea.Elastic`,
+    :class:`jaxdea.Gravity` or a sum of them) instead of ``damping``, with exactly one of its
+    parameters a 1-D increasing axis, e.g. ``Drag(quadratic=[...])``: the map's dims are then
+    ``(M, quadratic, f[, phase])`` (its other parameters are scalars, in the attrs; the law's
+    own mass must be 0 or the one ``mass`` value).
     ``phase`` (rad, in [0, 2 pi)): optional axis of B's delay, only with ``drive="both"``.
     ``protocol="paper"``: ``cycles`` periods from rest per cell, mean of the last ``average``.
     ``"continuation"``: the same, but each frequency starts from the previous frequency's
@@ -191,7 +218,8 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     ``chunk_cells`` keeps the interrupted run's chunk size, whatever the device or worker
     count now.
 
-    Returns a Dataset with dims (M, c, f[, phase]) and variables P_out, P_in, P_in_signed,
+    Returns a Dataset with dims (M, c, f[, phase]) (with ``payload``: (M, its axis parameter,
+    f[, phase])) and variables P_out, P_in, P_in_signed,
     efficiency, amplitude, v_rms, status (0 = ok, see :data:`jaxdea.STATUS`), steps, residual
     (periodicity residual of the last cycle), cycles_run, steady (false where the last cycles
     are not periodic, :data:`jaxdea.engine.metrics.STEADY_RESIDUAL`), plus P_max and
@@ -215,9 +243,23 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     check_choice("drive", drive, DRIVES)
     check_choice("direction", direction, DIRECTIONS)
     check_unit_interval("tol", tol)
-    axes = {"M": _axis("mass", mass, nonnegative=True),
-            "c": _axis("damping", damping, nonnegative=True),
-            "f": _axis("freq", freq, positive=True)}
+    law_axis = "c"
+    if payload is None:
+        axes = {"M": _axis("mass", mass, nonnegative=True),
+                "c": _axis("damping", damping, nonnegative=True)}
+    else:
+        check_payload(None if mass is None else np.atleast_1d(mass), damping, payload,
+                      axes=True)
+        varied = {k: v for k, v in parameters(payload).items() if np.ndim(v) == 1}
+        if not varied:
+            raise SweepError("payload: a map needs one law parameter as a 1-D axis, e.g. "
+                             "jaxdea.Drag(quadratic=[0.1, 1.0, 10.0]) (a single value: [x])")
+        (law_axis, values), = varied.items()
+        axes = {"M": _axis("mass", mass, nonnegative=True),
+                law_axis: _axis(f"payload.{law_axis}", values,
+                                nonnegative=law_axis not in _signed(payload),
+                                positive=law_axis in _positive(payload))}
+    axes["f"] = _axis("freq", freq, positive=True)
     if phase is not None:
         if drive != "both":
             raise SweepError(f"phase is only used with drive='both' (B delayed against A); "
@@ -243,6 +285,10 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     shape = tuple(a.size for a in axes.values())
     _check_size(shape, tuple(axes), store)
     warn_breakdown(model)
+    if payload is not None:  # the rest state of every (M, law value) exists
+        payload = anchor_payload(model, payload)
+        m, v = (a.ravel() for a in np.meshgrid(axes["M"], axes[law_axis], indexing="ij"))
+        check_rest(model, cell_payload(payload, m, m.size, **{law_axis: v}))
 
     # ---- chunking -----------------------------------------------------------------------
     devices = tuple(jax.devices()) if client is None else ()  # cluster: one per worker
@@ -271,14 +317,17 @@ def powermap(model: Model, *, mass, damping, freq, phase=None, drive: str = "A",
     n_chunks = -(-n_cells // chunk)
     grid = Grid(axes=axes, shape=shape,
                  amplitude=np.stack([on * float(model.voltage) for on, _ in patterns]),
-                 phases=np.stack([ph for _, ph in patterns]), duty=float(model.duty))
+                 phases=np.stack([ph for _, ph in patterns]), duty=float(model.duty),
+                 payload=payload, law_axis=law_axis)
     attrs = dict(model=model.name, drive=drive, protocol=protocol, cycles=int(cycles),
                  average=int(average),
                  direction=direction if protocol == "continuation" else None,
                  tol=float(tol) if protocol == "periodic" else None, early_exit=early_exit,
                  rtol=float(control.rtol), dt_max=float(control.dt_max),
                  max_steps=int(control.max_steps), voltage=float(model.voltage),
-                 duty=float(model.duty), jaxdea_version=jaxdea_version())
+                 duty=float(model.duty), jaxdea_version=jaxdea_version(),
+                 **(payload_parameters(payload) if payload is not None else {}),
+                 P_out_meaning=P_OUT_MEANING)
     if drive == "both" and phase is None:
         attrs["phase"] = 0.0
 

@@ -16,6 +16,7 @@ from ..engine.metrics import STATUS, STEADY_RESIDUAL, CycleMetrics, steady_cells
 from ..engine.protocols import Protocol, as_keywords
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
+from ..payloads import PARAMETER_UNITS
 from .loadings import check_payload, make_loadings, payload_parameters, warn_breakdown
 
 #: Units and descriptions of the per-cell outputs.
@@ -33,6 +34,9 @@ VARIABLES = {
                       "last cycle (0 = exactly periodic)"),
     "cycles_run": ("1", "drive cycles integrated for the cell (all stages)"),
 }
+#: What P_out is, for the attrs of every study.
+P_OUT_MEANING = ("power dissipated in the payload's dissipative elements (drag, friction); "
+                 "springs and gravity store and return energy: they are not output power")
 #: The steady flag, derived from status and residual (:func:`~jaxdea.engine.metrics.steady_cells`).
 STEADY = ("1", f"true where the last cycle ran to its end (status 0 or 4) and repeated itself: "
                f"periodicity residual <= {STEADY_RESIDUAL:g}; false: the averages are not a "
@@ -97,7 +101,7 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
     return to_dataset(res, {"f": freq}, attrs=dict(
         model=model.name, drive=drive, phase=float(phase), mass=float(mass_arr[0]),
         **({"damping": float(damping)} if payload is None else payload_parameters(payload)),
-        P_out_meaning="power dissipated in the payload's dissipative elements",
+        P_out_meaning=P_OUT_MEANING,
         protocol=protocol,
         direction=direction if protocol == "continuation" else None,
         tol=float(tol) if protocol == "periodic" else None,
@@ -119,8 +123,8 @@ def to_dataset(res: CycleMetrics, coords: dict[str, np.ndarray], attrs: dict) ->
     data["steady"] = xr.Variable(dims, steady_cells(data["status"].values,
                                                     data["residual"].values),
                                  attrs={"units": STEADY[0], "long_name": STEADY[1]})
-    coord_attrs = {"f": ("Hz", "drive frequency"), "M": ("kg", "payload mass"),
-                   "c": ("N s/m", "payload damping"), "phase": ("rad", "phase of B")}
+    coord_attrs = {**PARAMETER_UNITS, "f": ("Hz", "drive frequency"),
+                   "M": ("kg", "payload mass"), "phase": ("rad", "phase of B")}
     ds = xr.Dataset(
         data,
         coords={k: xr.Variable((k,), np.asarray(v), attrs={
@@ -128,10 +132,8 @@ def to_dataset(res: CycleMetrics, coords: dict[str, np.ndarray], attrs: dict) ->
             "long_name": coord_attrs.get(k, ("", ""))[1]}) for k, v in coords.items()},
         attrs={k: v for k, v in attrs.items() if v is not None},
     )
-    attr_units = {"mass": "kg", "damping": "N s/m", "payload_damping": "N s/m",
-                  "payload_linear": "N s/m", "payload_quadratic": "N s^2/m^2",
-                  "payload_coulomb": "N", "payload_coulomb_velocity": "m/s", "phase": "rad",
-                  "voltage": "V"}
+    attr_units = {"mass": "kg", "damping": "N s/m", "phase": "rad", "voltage": "V",
+                  **{f"payload_{k}": u for k, (u, _) in PARAMETER_UNITS.items()}}
     ds.attrs["attribute_units"] = ", ".join(f"{k}: {u}" for k, u in attr_units.items()
                                             if k in ds.attrs)
     return ds
