@@ -14,6 +14,7 @@ import pytest
 
 import jaxdea
 import scipy_reference as ref
+from conftest import CONFIG_DIR
 
 MASS = 2e-3  # kg
 FREQS = (30.0, 75.0)  # Hz
@@ -247,3 +248,77 @@ def test_too_heavy_a_payload_is_refused(models):
     with pytest.raises(jaxdea.SweepError, match="no static equilibrium with this payload"):
         jaxdea.sweep(models["scdea_ls"], payload=jaxdea.Drag(10.0, linear=C) + jaxdea.Gravity(),
                      freq=[50.0], cycles=2, average=1)
+
+
+def test_powermap_over_a_law_parameter(models):
+    """A payload parameter given as an axis is the map's second dim; every cell equals the
+    sweep of the same payload (the map and the sweep share the engine)."""
+    law = jaxdea.Drag(0.0, linear=C) + jaxdea.Gravity(tilt=[0.0, np.pi])
+    mass = [MASS, HEAVY]
+    ds = jaxdea.powermap(models["scdea_ls"], mass=mass, payload=law, freq=list(FREQS),
+                         cycles=CYCLES, average=AVERAGE, progress=False)
+    assert ds["P_out"].dims == ("M", "tilt", "f") and ds["tilt"].attrs["units"] == "rad"
+    assert ds.attrs["payload"] == "Drag + Gravity" and ds.attrs["payload_linear"] == C
+    assert "not output power" in ds.attrs["P_out_meaning"]
+    for i, m in enumerate(mass):
+        for j, tilt in enumerate((0.0, np.pi)):
+            sw = jaxdea.sweep(models["scdea_ls"], payload=jaxdea.Drag(m, linear=C)
+                              + jaxdea.Gravity(tilt=tilt), freq=list(FREQS), cycles=CYCLES,
+                              average=AVERAGE)
+            np.testing.assert_allclose(ds["P_out"].values[i, j], sw["P_out"].values,
+                                       rtol=1e-12, atol=0)
+    # the weight of the heavy payload moves P_out (hanging vs on top): the axis is live
+    assert abs(ds["P_out"].values[1, 0, 1] / ds["P_out"].values[1, 1, 1] - 1) > 1e-2
+    with pytest.raises(jaxdea.SweepError, match="needs one law parameter as a 1-D axis"):
+        jaxdea.powermap(models["scdea_ls"], mass=mass, payload=jaxdea.Drag(0.0, linear=C),
+                        freq=[50.0], cycles=2, average=1, progress=False)
+    with pytest.raises(jaxdea.SweepError, match="at most one law parameter may be an axis"):
+        jaxdea.powermap(models["scdea_ls"], mass=mass, freq=[50.0], cycles=2, average=1,
+                        payload=jaxdea.Drag(0.0, linear=[0.1, 1.0], quadratic=[1.0, 2.0]),
+                        progress=False)
+    with pytest.raises(jaxdea.SweepError, match="no static equilibrium"):
+        jaxdea.powermap(models["scdea_ls"], mass=[MASS, 10.0], freq=[50.0], cycles=2,
+                        average=1, payload=law, progress=False)
+
+
+def test_payload_table_in_configs(tmp_path):
+    """The [payload] table: read by load_payload, checked by load_config (one line naming
+    the key and its range)."""
+    law = jaxdea.load_payload(CONFIG_DIR / "scdea_ls_loaded.toml")
+    assert [type(x).__name__ for x in law.laws] == ["Drag", "Elastic", "Gravity"]
+    assert law.mass == MASS and jaxdea.payloads.parameters(law)["stiffness"] == 200.0
+    assert jaxdea.load_payload(CONFIG_DIR / "scdea_ls.toml") is None
+    text = (CONFIG_DIR / "scdea_ls_loaded.toml").read_text()
+    for old, new, match in (("tilt = 0.0", "tilt = nan", "payload.gravity.tilt"),
+                            ("stiffness = 200.0", "stiffnes = 200.0",
+                             r"missing key\(s\) in \[payload.elastic\]: stiffness"),
+                            ("tilt = 0.0", "tilt = 0.0\nangle = 1.0",
+                             r"unknown key\(s\) in \[payload.gravity\]: angle"),
+                            ("mass = 2e-3", "mass = -1.0", r"payload.mass = -1.0 is outside")):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text.replace(old, new))
+        with pytest.raises(jaxdea.ConfigError, match=match):
+            jaxdea.load_config(bad)
+
+
+def test_cli_payload_flags(tmp_path, capsys):
+    """The CLI's law flags and the config's table give the same sweep as the Python API."""
+    from jaxdea.cli import main
+
+    cfg = str(CONFIG_DIR / "scdea_ls.toml")
+    out = tmp_path / "s.nc"
+    rc = main(["sweep", cfg, "--mass", str(HEAVY), "--damping", str(C), "--tilt", "0",
+               "--freq", "75:75:1", "--cycles", str(CYCLES), "--average", str(AVERAGE),
+               "--out", str(out)])
+    assert rc == 0 and "Drag + Gravity" in capsys.readouterr().out
+    import xarray as xr
+
+    with xr.open_dataset(out, engine="h5netcdf") as ds:
+        got = float(ds["P_out"].values[0])
+    want = jaxdea.sweep(jaxdea.load_config(cfg), payload=jaxdea.Drag(HEAVY, linear=C)
+                        + jaxdea.Gravity(tilt=0.0), freq=[75.0], cycles=CYCLES,
+                        average=AVERAGE)["P_out"].values[0]
+    assert got == pytest.approx(want, rel=1e-12)
+    assert main(["sweep", cfg, "--mass", "2e-3", "--freq", "75:75:1", "--out",
+                 str(tmp_path / "x.nc")]) == 2
+    assert "--damping is missing" in capsys.readouterr().err

@@ -43,7 +43,7 @@ from .models.planar import PlanarDEA, gu2017  # noqa: E402
 from .models.rotary import RotaryDCDEA  # noqa: E402
 
 # config
-from .config import load_config, model_from_dict  # noqa: E402
+from .config import load_config, load_payload, model_from_dict  # noqa: E402
 
 # engine
 from .engine.batch import EARLY_EXIT  # noqa: E402
@@ -83,7 +83,7 @@ __all__ = [
     "PlanarDEA", "RotaryDCDEA", "SCDEA_LS", "gu2017", "huang2020", "nouhi_kelvin",
     "prestretch_report",
     # config
-    "load_config", "model_from_dict",
+    "load_config", "load_payload", "model_from_dict",
     # engine
     "EARLY_EXIT", "STATUS", "Continuation", "CycleMetrics", "Paper", "Periodic", "StepControl",
     "run_protocol", "use_cpu_cores",

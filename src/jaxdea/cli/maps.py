@@ -20,6 +20,7 @@ from .args import (
     protocol_args,
     write_dataset,
 )
+from .payload import add_payload_args, cli_payload, describe
 
 #: What the drive cases mean (paper 000): which membranes the square wave drives.
 DRIVE_HELP = ("A: membrane A only (the single cone's one membrane; the double cones' first); "
@@ -35,10 +36,13 @@ def _sweep(args) -> int:
     model = jaxdea.load_config(args.config)
     check_cone_model(model)  # before its name is printed
     control = jaxdea.StepControl(rtol=args.rtol)
+    payload, damping = cli_payload(args)
+    _need_payload(args, payload, damping)
     print(f"jaxdea sweep: {model.name}, drive {args.drive}, {freq.size} frequencies "
-          f"{freq[0]:g}-{freq[-1]:g} Hz, protocol {args.protocol}, {args.cycles} cycles "
-          f"(average last {args.average})", flush=True)
-    ds = jaxdea.sweep(model, mass=args.mass, damping=args.damping, freq=freq, drive=args.drive,
+          f"{freq[0]:g}-{freq[-1]:g} Hz, payload {describe(payload, damping)}, protocol "
+          f"{args.protocol}, {args.cycles} cycles (average last {args.average})", flush=True)
+    ds = jaxdea.sweep(model, mass=args.mass, damping=damping, payload=payload, freq=freq,
+                      drive=args.drive,
                       phase=args.phase, cycles=args.cycles, average=args.average,
                       control=control, protocol=args.protocol, direction=args.direction,
                       tol=args.tol, early_exit=args.early_exit)
@@ -71,15 +75,23 @@ def _powermap(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be at least 1, got {args.workers}")
     mass = parse_points(args.mass, "--mass")
-    damping = parse_points(args.damping, "--damping")
+    payload, damping = cli_payload(args, ranges=True)
+    _need_payload(args, payload, damping)
+    if payload is None:
+        damping = parse_points(damping, "--damping")
+        second, label = damping.size, "c"
+    else:
+        axis = [k for k, v in _law_values(payload).items() if np.ndim(v) == 1]
+        second, label = (np.size(_law_values(payload)[axis[0]]), axis[0]) if axis else (1, "")
     freq = parse_range(args.freq, "--freq")
     phase = parse_phases(args.phase) if args.phase is not None else None
     check_png(args.plot)
     model = jaxdea.load_config(args.config)
     check_cone_model(model)  # before its name is printed
-    n = mass.size * damping.size * freq.size * (1 if phase is None else phase.size)
-    print(f"jaxdea powermap: {model.name}, drive {args.drive}, protocol {args.protocol}: "
-          f"{mass.size} M x {damping.size} c x {freq.size} f"
+    n = mass.size * second * freq.size * (1 if phase is None else phase.size)
+    print(f"jaxdea powermap: {model.name}, drive {args.drive}, payload "
+          f"{describe(payload, damping)}, protocol {args.protocol}: "
+          f"{mass.size} M x {second} {label} x {freq.size} f"
           + (f" x {phase.size} phase" if phase is not None else "")
           + f" = {n} cells, {args.cycles} cycles (average last {args.average}), "
           + (f"{args.direction} continuation, " if args.protocol == "continuation" else "")
@@ -88,7 +100,8 @@ def _powermap(args) -> int:
           flush=True)
     try:
         with _cluster_client(args) as client:
-            ds = _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client)
+            ds = _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client,
+                               payload)
     except KeyboardInterrupt:
         print(f"\njaxdea powermap: interrupted. Finished chunks are kept in {out}.parts; "
               "to go on from them, run the same command with --resume:\n  "
@@ -118,8 +131,27 @@ def _cluster_client(args):
         yield client
 
 
-def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client=None):
-    return jaxdea.powermap(model, mass=mass, damping=damping, freq=freq, phase=phase,
+def _need_payload(args, payload, damping) -> None:
+    """One line when the command names no payload (or, for a sweep, no mass)."""
+    if payload is None and damping is None:
+        raise ValueError("--damping is missing: give --damping (N s/m, the linear dashpot), a "
+                         "payload flag (--quadratic, --coulomb, --load-stiffness, --tilt, ...) "
+                         "or a [payload] table in the config")
+    if args.mass is None and (payload is None or float(np.sum(payload.mass)) == 0.0):
+        raise ValueError("--mass is missing: give the payload mass (kg, >= 0) or a [payload] "
+                         "table with its mass in the config")
+
+
+def _law_values(payload) -> dict:
+    from jaxdea.payloads import parameters
+
+    return parameters(payload)
+
+
+def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client=None,
+                  payload=None):
+    return jaxdea.powermap(model, mass=mass, damping=damping, payload=payload, freq=freq,
+                           phase=phase,
                            drive=args.drive, protocol=args.protocol, cycles=args.cycles,
                            average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
                            direction=args.direction, tol=args.tol, early_exit=args.early_exit,
@@ -148,8 +180,10 @@ def _summarise_map(ds, out, plot) -> int:
         flat = int(np.argmax(np.nan_to_num(pmax.values, nan=-np.inf)))
         best = dict(zip(pmax.dims, np.unravel_index(flat, pmax.shape)))
         at = {k: float(ds[k][v]) for k, v in best.items()}
+        law = next(k for k in at if k not in ("M", "phase"))
+        unit = ds[law].attrs.get("units", "")
         print(f"wrote {out}: P_max (steady cells) {1e3 * float(pmax.isel(best)):.3f} mW at "
-              f"M = {1e3 * at['M']:g} g, c = {at['c']:g} N s/m"
+              f"M = {1e3 * at['M']:g} g, {law} = {at[law]:g} {unit}"
               + (f", phase = {at['phase']:g} rad" if "phase" in at else "")
               + f", f = {float(ds['f_at_P_max'].isel(best)):g} Hz; {bad} failed cell(s)")
     else:
@@ -192,8 +226,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Add the ``sweep``, ``powermap`` and ``plot`` commands to ``sub``."""
     s = sub.add_parser("sweep", help="frequency sweep of one payload (paper 000 protocol)")
     s.add_argument("config", help="TOML config, e.g. configs/dcdea_ls.toml")
-    s.add_argument("--mass", type=float, required=True, help="payload mass M, kg")
-    s.add_argument("--damping", type=float, required=True, help="payload damping c, N s/m")
+    s.add_argument("--mass", type=float, help="payload mass M, kg (default: the config's "
+                   "[payload] mass)")
+    s.add_argument("--damping", type=float, help="payload damping c, N s/m (the linear "
+                   "dashpot; with a payload law its viscous term)")
+    add_payload_args(s, ranges=False)
     s.add_argument("--freq", required=True, help="FMIN:FMAX:DF in Hz (inclusive)")
     s.add_argument("--drive", default="A", choices=["A", "B", "both"], help=DRIVE_HELP)
     s.add_argument("--phase", type=float, default=0.0, help="phase of B vs A, rad [0, 2 pi)")
@@ -209,8 +246,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     m.add_argument("config", help="TOML config, e.g. configs/dcdea_ls.toml")
     m.add_argument("--mass", required=True,
                    help="MIN:MAX:N[:log|:lin] payload masses M, kg (N points, default log)")
-    m.add_argument("--damping", required=True,
-                   help="MIN:MAX:N[:log|:lin] payload dampings c, N s/m (N points, default log)")
+    m.add_argument("--damping",
+                   help="MIN:MAX:N[:log|:lin] payload dampings c, N s/m (N points, default log); "
+                        "with a payload law a number or a range (its viscous term)")
+    add_payload_args(m, ranges=True)
     m.add_argument("--freq", required=True, help="FMIN:FMAX:DF in Hz (inclusive)")
     m.add_argument("--phase", help="MIN:MAX:N phases of B vs A, rad: N points in [MIN, MAX) "
                                    "(drive both only)")

@@ -19,6 +19,7 @@ from typing import Any
 from .._checks import ConfigError
 from .cones import ACTUATOR_CLASSES, cone_from_config
 from .fields import POS, Field
+from .payload import payload_from_config
 from .rotary import rotary_from_config
 from .viscoelastic import mass_cone_from_config, planar_from_config
 
@@ -33,7 +34,8 @@ LOADERS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "mass_cone_nouhi": mass_cone_from_config,
 }
 
-__all__ = ["LOADERS", "POS", "ConfigError", "Field", "load_config", "model_from_dict"]
+__all__ = ["LOADERS", "POS", "ConfigError", "Field", "load_config", "load_payload",
+           "model_from_dict", "payload_from_config"]
 
 
 def model_from_dict(cfg: dict[str, Any]) -> Any:
@@ -70,17 +72,39 @@ def load_config(path: str | Path) -> Any:
     Returns:
         The validated model (:func:`model_from_dict`).
     """
+    path, cfg = _read_toml(path)
+    try:
+        return model_from_dict(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def load_payload(path: str | Path):
+    """Read the payload law of a cone config's optional ``[payload]`` table.
+
+    Arguments:
+        path: the ``.toml`` file.
+
+    Returns:
+        A payload law (:class:`jaxdea.Drag`, plus :class:`jaxdea.Elastic` and
+        :class:`jaxdea.Gravity` with ``[payload.elastic]`` / ``[payload.gravity]``), or
+        ``None`` when the config has no ``[payload]`` table.
+    """
+    path, cfg = _read_toml(path)
+    try:
+        return payload_from_config(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def _read_toml(path: str | Path) -> tuple[Path, dict]:
     path = Path(path)
     try:
         with path.open("rb") as fh:
-            cfg = tomllib.load(fh)
+            return path, tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(f"config file not found: {path}") from None
     except IsADirectoryError:
         raise ConfigError(f"{path} is a directory, not a config file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    try:
-        return model_from_dict(cfg)
-    except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None

@@ -9,6 +9,7 @@ Layout (SI; see ``configs/scdea_ls.toml``)::
     [membrane.electrode]   mu_A, J_A, mu_B, J_B, tau
     [actuator]  disk_mass and the configuration's own fields (ACTUATOR_FIELDS)
     [drive]     voltage, duty, and optionally breakdown_field (V/m, default 100e6)
+    [payload]   optional: the driven load (:mod:`jaxdea.config.payload`)
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from ..materials import GentMaxwell, gent_denominator
 from ..membrane import BREAKDOWN_FIELD, ConeMembrane
 from ..models import DCDEA_LS, DCDEA_RR, SCDEA_LS, ConeActuator, Model
 from .fields import Field, check_top, section, subtables
+from .payload import payload_from_config
 
 MEMBRANE_FIELDS = {
     "inner_radius": Field(0.0, math.inf, lo_open=True, unit="m"),
@@ -71,7 +73,8 @@ ACTUATOR_CLASSES: dict[str, type[ConeActuator]] = {
 
 def cone_from_config(cfg: dict[str, Any]) -> Model:
     """Validated cone :class:`~jaxdea.models.Model` from a parsed config dictionary."""
-    check_top(cfg, cfg["model"], ("membrane", "actuator", "drive"))
+    check_top(cfg, cfg["model"], ("membrane", "actuator", "drive"), ("payload",))
+    payload_from_config(cfg)  # an optional [payload] table: checked here, read by load_payload
     kind = cfg["model"]
 
     flat, nested = subtables(cfg["membrane"], "membrane", ("dielectric", "electrode"))

@@ -134,7 +134,7 @@ def check_payload(mass, damping, payload, axes: bool = False):
         raise SweepError("payload must be a payload law ("
                          + ", ".join(f"jaxdea.{c.__name__}" for c in PAYLOAD_LAWS[:-1])
                          + f", or a sum of them with +), got {type(payload).__name__}")
-    n_axes = 0
+    axis_names = []
     for law in payload.laws:
         for f in dataclasses.fields(law):
             value = getattr(law, f.name)
@@ -143,16 +143,17 @@ def check_payload(mass, damping, payload, axes: bool = False):
             if value is None and f.name == "anchor":
                 continue
             is_axis = axes and f.name != "mass" and np.ndim(value) == 1
-            n_axes += is_axis
+            if is_axis:
+                axis_names.append(f.name)
             if np.ndim(value) != 0 and not is_axis:
                 raise SweepError(f"{where} must be a scalar, got shape {np.shape(value)}"
                                  + (" (a power map takes one law parameter as a 1-D axis)"
                                     if axes else " (use powermap for an axis)"))
             finite_array(where, value, nonnegative=f.name not in law.signed_fields,
                          positive=f.name in law.positive_fields)
-    if n_axes > 1:
-        raise SweepError("payload: at most one law parameter may be an axis (1-D array), "
-                         f"got {n_axes}")
+    if len(axis_names) > 1:
+        raise SweepError("payload: at most one law parameter may be an axis (1-D array), got "
+                         f"{', '.join(axis_names)} (the CLI's --damping is the law's linear)")
     law_mass = float(np.asarray(payload.mass))
     if mass is None:
         mass = law_mass
