@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 
 from .args import check_png, check_writable
+from .payload import add_payload_args, cli_payload
 
 OBJECTIVES = ("pmax", "power", "efficiency")
 PAYLOAD = ("mass", "damping")
@@ -76,8 +77,10 @@ def _check_objective(args) -> tuple[float, float] | None:
     return None
 
 
-def _check_numbers(args, vary) -> None:
+def _check_numbers(args, vary, payload=None) -> None:
     for name in PAYLOAD:
+        if payload is not None and (name == "damping" or float(payload.mass) > 0):
+            continue  # the payload law carries them
         if getattr(args, name) is None and name not in vary:
             raise ValueError(f"--{name} is needed unless it is varied (--vary {name}=LO:HI)")
     if "freq" in vary:
@@ -92,16 +95,28 @@ def _check_numbers(args, vary) -> None:
                          "(0, inf)")
 
 
-def _start_is_config(model, vary, mapping, args) -> bool:
+def _start_is_config(model, vary, mapping, args, payload=None) -> bool:
     """Whether the first start is the config's design (all its values inside the bounds)."""
     from jaxdea.params import get_params
+    from jaxdea.studies.builder import LAW, law_value
 
     for name, (lo, hi) in vary.items():
-        v = (getattr(args, name) if name in PAYLOAD
-             else next(iter(get_params(model, [mapping[name]]).values())))
+        if name.startswith(LAW):
+            v = law_value(payload, name)
+        elif name == "mass" and args.mass is None and payload is not None:
+            v = float(payload.mass)
+        else:
+            v = (getattr(args, name) if name in PAYLOAD
+                 else next(iter(get_params(model, [mapping[name]]).values())))
         if v is None or not lo <= v <= hi:
             return False
     return True
+
+
+def _law_flags(args) -> bool:
+    from .payload import FLAGS
+
+    return any(getattr(args, k, None) is not None for k in FLAGS)
 
 
 def _what(objective: str, result, args, band) -> str:
@@ -127,19 +142,22 @@ def _optimise(args) -> int:
     check_png(args.plot)
     vary = parse_vary(args.vary)
     band = _check_objective(args)
-    _check_numbers(args, vary)
+    payload, damping = cli_payload(args) if args.damping is None or _law_flags(args) else (
+        None, args.damping)
+    _check_numbers(args, vary, payload)
     model = jaxdea.load_config(args.config)
     check_cone_model(model)
     try:
-        mapping = resolve(model, list(vary))
+        mapping = resolve(model, list(vary), payload)
     except jaxdea.SweepError as exc:
         raise ValueError(f"--vary: {exc}") from None
-    from_config = _start_is_config(model, vary, mapping, args)
+    from_config = _start_is_config(model, vary, mapping, args, payload)
     print(f"jaxdea optimise: {model.name}, objective {args.objective} "
           + (f"over {band[0]:g}-{band[1]:g} Hz" if band else f"at {args.freq:g} Hz")
           + f", drive {args.drive}, vary {', '.join(vary)}: {args.starts} start(s), at most "
           f"{args.maxiter} iteration(s)", flush=True)
-    result = jaxdea.optimise(model, vary, args.objective, mass=args.mass, damping=args.damping,
+    result = jaxdea.optimise(model, vary, args.objective, mass=args.mass, damping=damping,
+                             payload=payload,
                              band=band, freq=args.freq, drive=args.drive, phase=args.phase,
                              max_field=args.max_field, starts=args.starts, seed=args.seed,
                              maxiter=args.maxiter)
@@ -180,13 +198,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     o.add_argument("--vary", action="append", required=True, metavar="NAME=LO:HI",
                    help="a parameter to vary and its bounds, SI units (repeat for more): a "
                         "model path or unique suffix, e.g. actuator.spring_stiffness=100:2000, "
-                        "membrane.prestretch=1.05:1.6, or mass / damping")
+                        "membrane.prestretch=1.05:1.6, mass / damping, or a payload law's "
+                        "payload.NAME (e.g. payload.quadratic=0.1:10)")
     o.add_argument("--objective", default="pmax", choices=OBJECTIVES,
                    help="pmax: peak P_out over --band; power: P_out at --freq; efficiency: "
                         "P_out / P_in at --freq")
     o.add_argument("--mass", type=float, help="payload mass M, kg (start value if varied)")
     o.add_argument("--damping", type=float,
                    help="payload damping c, N s/m (start value if varied)")
+    add_payload_args(o, ranges=False)
     o.add_argument("--band", metavar="F_LO:F_HI", help="pmax: frequency band, Hz")
     o.add_argument("--freq", type=float, help="power, efficiency: drive frequency, Hz")
     o.add_argument("--drive", default="A", choices=["A", "B", "both"],

@@ -29,122 +29,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import CalibrationError, SweepError, finite_array
+from .._checks import SweepError, finite_array
 from ..engine.sensitivity import METRICS, Steady, implicit, solve_designs, stack_designs
 from ..engine.step_control import StepControl
 from ..models.cone import Model
-from ..params import make_params, resolve_names, with_theta
-from .loadings import cell_loadings, check_cone_model, drive_pattern
+from .builder import Builder, Sub, make_builder, resolve, split_names, theta_of
+from .loadings import check_cone_model
 from .peak_search import bracket_ready, next_frequencies, stationary_point
-
-#: Names of the payload and drive values that can be differentiated besides model paths.
-PAYLOAD_NAMES = ("mass", "damping", "freq")
 
 #: Default periodic solve of the design study: Newton to 1e-8, engine rtol 1e-7 (central
 #: differences of P_out agree with the implicit derivative to ~1e-7 there).
 DESIGN_STEADY = Steady(tol=1e-8, warmup=30, newton=10,
                        control=StepControl(rtol=1e-7, dt_max=1e-3))
-
-
-class Builder(eqx.Module):
-    """``theta -> (actuator, loadings)`` of one design over a batch of cells.
-
-    ``theta`` holds the model parameters ``params`` (in order), then the payload and drive
-    values named in ``slots`` (positions in ``theta``, -1 = not varied), then, if
-    ``shift >= 0``, a frequency shift added to every cell's frequency.
-    """
-
-    model: Model
-    params: tuple = eqx.field(static=True)
-    slots: tuple = eqx.field(static=True)  # theta positions of mass, damping, freq (-1: none)
-    shift: int = eqx.field(static=True)
-    mass: jax.Array
-    damping: jax.Array
-    freq: jax.Array
-    on: jax.Array
-    phases: jax.Array
-
-    def __call__(self, theta):
-        model = with_theta(self.model, list(self.params), theta[:len(self.params)])
-        n = self.freq.shape[0]
-        m, c, f = (self.mass, self.damping, self.freq)
-        im, ic, jf = self.slots
-        m = m if im < 0 else jnp.broadcast_to(theta[im], (n,))
-        c = c if ic < 0 else jnp.broadcast_to(theta[ic], (n,))
-        f = f if jf < 0 else jnp.broadcast_to(theta[jf], (n,))
-        if self.shift >= 0:
-            f = f + theta[self.shift]
-        amp = jnp.broadcast_to(self.on * model.voltage, (n, self.on.shape[0]))
-        ph = jnp.broadcast_to(self.phases, (n, self.on.shape[0]))
-        return model.actuator, cell_loadings(amp, f, model.duty, ph, m, c)
-
-
-class Sub(eqx.Module):
-    """``build`` with only the ``free`` entries of ``theta`` varied (the rest held)."""
-
-    build: Builder
-    theta: jax.Array
-    free: tuple = eqx.field(static=True)
-
-    def __call__(self, sub):
-        return self.build(self.theta.at[jnp.asarray(self.free)].set(sub))
-
-
-def resolve(model: Model, names) -> dict[str, str]:
-    """Validated names: ``{given name: full model path or payload name}``, in the order given.
-
-    **Arguments:**
-
-    - `model`: a cone :class:`~jaxdea.Model`.
-    - `names`: parameter names (model paths or suffixes, or :data:`PAYLOAD_NAMES`).
-
-    **Returns:**
-
-    The mapping; :class:`~jaxdea.SweepError` for an unknown, ambiguous or repeated name.
-    """
-    names = list(names)
-    rest = [n for n in names if n not in PAYLOAD_NAMES]
-    try:
-        full = resolve_names(model, rest) if rest else []
-    except CalibrationError as e:
-        raise SweepError(str(e).replace(" in fit", " in vary")) from None
-    to_full = dict(zip(rest, full))
-    return {n: to_full.get(n, n) for n in names}
-
-
-def split_names(mapping: dict) -> tuple[list[str], list[str], list[str]]:
-    """(given names in theta order, model paths, payload names): model paths first."""
-    model_keys = [k for k, v in mapping.items() if v not in PAYLOAD_NAMES]
-    pay_keys = [k for k, v in mapping.items() if v in PAYLOAD_NAMES]
-    return (model_keys + pay_keys, [mapping[k] for k in model_keys],
-            [mapping[k] for k in pay_keys])
-
-
-def make_builder(model, full, pay, *, mass, damping, freq, drive, phase, shift):
-    check_cone_model(model)
-    on, phases = drive_pattern(model, drive, 0.0 if phase is None else float(phase))
-    params = tuple(make_params(model, full, transforms={n: "linear" for n in full})
-                   if full else ())  # none varied: the model as it is
-    pos = {n: len(full) + i for i, n in enumerate(pay)}
-    slots = tuple(pos.get(k, -1) for k in PAYLOAD_NAMES)
-    for name, v in (("mass", mass), ("damping", damping)):
-        if name not in pay and v is None:
-            raise SweepError(f"{name} is needed (allowed range [0, inf)), got None")
-    f = np.atleast_1d(np.asarray(freq, float))
-    n = f.size
-    mass = 0.0 if mass is None else float(finite_array("mass", mass, nonnegative=True)[0])
-    damping = 0.0 if damping is None else float(
-        finite_array("damping", damping, nonnegative=True)[0])
-    return Builder(model=model, params=params, slots=slots,
-                   shift=len(full) + len(pay) if shift else -1,
-                   mass=jnp.full(n, mass), damping=jnp.full(n, damping), freq=jnp.asarray(f),
-                   on=jnp.asarray(on), phases=jnp.asarray(phases))
-
-
-def _theta(values: dict, keys: list):
-    if not keys:
-        return jnp.zeros(0)
-    return jnp.stack([jnp.asarray(values[k], dtype=jnp.float64).reshape(()) for k in keys])
 
 
 class _AtFrequency(eqx.Module):
@@ -160,6 +56,7 @@ class _AtFrequency(eqx.Module):
 
 
 def steady_objectives(model: Model, values: dict | None = None, *, mass=None, damping=None,
+                      payload=None,
                       freq=None, drive: str = "A", phase: float | None = None,
                       settings: Steady = DESIGN_STEADY) -> dict[str, jax.Array]:
     """Metrics of the periodic steady state, differentiable in named parameters.
@@ -171,6 +68,8 @@ def steady_objectives(model: Model, values: dict | None = None, *, mass=None, da
       ``"mass"`` (kg), ``"damping"`` (N s/m), ``"freq"`` (Hz) set to these values and
       differentiated; e.g. ``jax.grad(lambda v: steady_objectives(model, v, ...)["P_out"])``.
     - `mass`, `damping`: payload M (kg) and c (N s/m), unless in ``values``.
+    - `payload`: a payload law (:class:`jaxdea.Drag`, ... or a sum) instead of `damping`;
+      its parameters are named ``"payload.<name>"`` (e.g. ``"payload.quadratic"``).
     - `freq`: drive frequency or 1-D array of them (Hz), unless ``"freq"`` is in ``values``.
     - `drive`, `phase`: the drive case (``"A"``, ``"B"``, ``"both"`` with B's delay, rad).
     - `settings`: the periodic solve (:class:`~jaxdea.engine.sensitivity.Steady`).
@@ -181,7 +80,7 @@ def steady_objectives(model: Model, values: dict | None = None, *, mass=None, da
     shape of ``freq`` (NaN where status != 0).
     """
     values = dict(values or {})
-    keys, full, pay = split_names(resolve(model, list(values)))
+    keys, full, pay = split_names(resolve(model, list(values), payload))
     if "freq" in pay:
         if freq is not None:
             raise SweepError("freq is given twice: in values and as freq=; drop one")
@@ -190,9 +89,9 @@ def steady_objectives(model: Model, values: dict | None = None, *, mass=None, da
         raise SweepError("freq is needed (allowed range (0, inf) Hz), got None")
     shape = np.shape(freq)
     f = finite_array("freq", freq, positive=True)
-    build = make_builder(model, full, pay, mass=mass, damping=damping, freq=f, drive=drive,
-                     phase=phase, shift=False)
-    out = implicit(_AtFrequency(build, settings), _theta(values, keys))
+    build = make_builder(model, full, pay, mass=mass, damping=damping, payload=payload, freq=f,
+                         drive=drive, phase=phase, shift=False)
+    out = implicit(_AtFrequency(build, settings), theta_of(values, keys))
     return {k: v.reshape(shape) for k, v in out.items()}
 
 
@@ -326,6 +225,7 @@ def check_band(band) -> tuple[float, float]:
 
 
 def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=None,
+               payload=None,
                band=(1.0, 200.0), drive: str = "A", phase: float | None = None,
                grid: int = 8, refine: int = 6,
                settings: Steady = DESIGN_STEADY) -> dict[str, jax.Array]:
@@ -337,6 +237,8 @@ def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=N
     - `model`: a cone :class:`~jaxdea.Model`.
     - `values`: ``{name: scalar}`` as in :func:`steady_objectives` (not ``"freq"``).
     - `mass`, `damping`: payload M (kg) and c (N s/m), unless in ``values``.
+    - `payload`: a payload law (:class:`jaxdea.Drag`, ... or a sum) instead of `damping`;
+      its parameters are named ``"payload.<name>"`` (e.g. ``"payload.quadratic"``).
     - `band`: ``(f_lo, f_hi)``, Hz.
     - `drive`, `phase`: the drive case.
     - `grid`: frequencies per level (>= 3); `refine`: most levels after the first
@@ -348,7 +250,7 @@ def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=N
     ``{"P_max" (W), "f_at_P_max" (Hz; zero derivative), "status"}``.
     """
     values = dict(values or {})
-    keys, full, pay = split_names(resolve(model, list(values)))
+    keys, full, pay = split_names(resolve(model, list(values), payload))
     if "freq" in pay:
         raise SweepError("freq cannot be varied in peak_power: the band fixes it")
     lo, hi = check_band(band)
@@ -356,9 +258,9 @@ def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=N
         raise SweepError(f"grid must be an integer >= 3, got {grid!r}")
     if isinstance(refine, bool) or not isinstance(refine, int) or refine < 0:
         raise SweepError(f"refine must be an integer >= 0, got {refine!r}")
-    build = make_builder(model, full, pay, mass=mass, damping=damping,
+    build = make_builder(model, full, pay, mass=mass, damping=damping, payload=payload,
                      freq=np.linspace(lo, hi, grid), drive=drive, phase=phase, shift=True)
-    return implicit(_Peak(build, (lo, hi), grid, refine, settings), _theta(values, keys))
+    return implicit(_Peak(build, (lo, hi), grid, refine, settings), theta_of(values, keys))
 
 
 def objective_function(model: Model, names, objective: str | Callable, **kw) -> Callable:
@@ -369,7 +271,8 @@ def objective_function(model: Model, names, objective: str | Callable, **kw) -> 
 
     - `model`, `names`: the model and the varied names.
     - `objective`: the objective.
-    - `kw`: ``mass``, ``damping``, ``freq`` or ``band``, ``drive``, ``phase``, ``settings``.
+    - `kw`: ``mass``, ``damping`` or ``payload``, ``freq`` or ``band``, ``drive``, ``phase``,
+      ``settings``.
 
     **Returns:**
 
@@ -388,7 +291,8 @@ def objective_function(model: Model, names, objective: str | Callable, **kw) -> 
     return lambda v: objective(steady_objectives(model, v, **kw))
 
 
-def design_map(model: Model, values: dict, *, mass=None, damping=None, band=(1.0, 200.0),
+def design_map(model: Model, values: dict, *, mass=None, damping=None, payload=None,
+               band=(1.0, 200.0),
                drive: str = "A", phase: float | None = None, grid: int = 8, refine: int = 6,
                settings: Steady = DESIGN_STEADY, devices: tuple | None = None,
                progress: bool = True):
@@ -400,6 +304,8 @@ def design_map(model: Model, values: dict, *, mass=None, damping=None, band=(1.0
     - `values`: ``{name: 1-D array}``: model parameter paths (:mod:`jaxdea.params`) or
       ``"mass"``, ``"damping"``; the designs are their outer product (one map axis each).
     - `mass`, `damping`: payload M (kg) and c (N s/m), unless in ``values``.
+    - `payload`: a payload law (:class:`jaxdea.Drag`, ... or a sum) instead of `damping`;
+      its parameters are named ``"payload.<name>"`` (e.g. ``"payload.quadratic"``).
     - `band`: ``(f_lo, f_hi)``, Hz; `grid`, `refine`: the peak search (:func:`peak_power`).
     - `drive`, `phase`: the drive case.
     - `settings`: the periodic solve.
@@ -426,7 +332,7 @@ def design_map(model: Model, values: dict, *, mass=None, damping=None, band=(1.0
     for k, a in arrays.items():
         if a.ndim != 1 or a.size < 1:
             raise SweepError(f"values[{k!r}] must be a 1-D array of at least one value")
-    mapping = resolve(model, list(arrays))
+    mapping = resolve(model, list(arrays), payload)
     if "freq" in mapping.values():
         raise SweepError("freq cannot be a design axis: the band fixes it")
     lo, hi = check_band(band)
@@ -435,7 +341,7 @@ def design_map(model: Model, values: dict, *, mass=None, damping=None, band=(1.0
     mesh = np.meshgrid(*arrays.values(), indexing="ij")
     shape = mesh[0].shape
     theta = np.stack([mesh[names.index(k)].ravel() for k in keys], axis=1)
-    build = make_builder(model, full, pay, mass=mass, damping=damping,
+    build = make_builder(model, full, pay, mass=mass, damping=damping, payload=payload,
                          freq=np.linspace(lo, hi, grid), drive=drive, phase=phase, shift=True)
     devices = tuple(jax.devices() if devices is None else devices)
     batch = 8 * len(devices)

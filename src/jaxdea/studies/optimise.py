@@ -25,7 +25,8 @@ from ..config.cones import ACTUATOR_FIELDS, DRIVE_FIELDS, MATERIAL_FIELDS, MEMBR
 from ..engine.sensitivity import Steady, solve_designs
 from ..models.cone import Model
 from ..params import get_params, set_params
-from .design import DESIGN_STEADY, check_band, make_builder, peak_designs, resolve, split_names
+from .builder import LAW, law_value, make_builder, resolve, split_names
+from .design import DESIGN_STEADY, check_band, peak_designs
 from .loadings import check_cone_model, nominal_field
 
 OBJECTIVES = ("pmax", "power", "efficiency")
@@ -100,11 +101,11 @@ def write_cone_toml(model: Model, path, header: str = "") -> Path:
     return path
 
 
-def _check_inputs(model, vary, objective, band, freq, starts, max_field, x0):
+def _check_inputs(model, vary, objective, band, freq, starts, max_field, x0, payload=None):
     check_cone_model(model)
     if not isinstance(vary, dict) or not vary:
         raise SweepError("vary must be a non-empty dict {name: (lower, upper)}")
-    mapping = resolve(model, list(vary))
+    mapping = resolve(model, list(vary), payload)
     if any(v == "freq" for v in mapping.values()):
         raise SweepError("freq cannot be varied: give freq= or band=")
     bounds = {}
@@ -143,7 +144,7 @@ def _check_inputs(model, vary, objective, band, freq, starts, max_field, x0):
 
 
 def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, mass=None,
-             damping=None, band=None, freq=None, drive: str = "A", phase=None,
+             damping=None, payload=None, band=None, freq=None, drive: str = "A", phase=None,
              max_field: float = 80e6, starts: int = 8, seed: int = 0, x0: dict | None = None,
              maxiter: int = 20, gtol: float = 1e-3, settings: Steady = DESIGN_STEADY,
              grid: int = 8, refine: int = 6, devices: tuple | None = None) -> OptimiseResult:
@@ -153,11 +154,13 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
 
     - `model`: a cone :class:`~jaxdea.Model` (the start design).
     - `vary`: ``{name: (lower, upper)}``: model parameter paths (:mod:`jaxdea.params`) or
-      ``"mass"``, ``"damping"``, with their bounds.
+      ``"mass"``, ``"damping"`` (or a payload law's ``"payload.<name>"``), with their
+      bounds.
     - `objective`: ``"pmax"`` (P_max over ``band``), ``"power"`` (P_out at ``freq``),
       ``"efficiency"`` (at ``freq``), or a callable of the :func:`steady_objectives` dict
       at ``freq`` returning a scalar (JAX operations) to maximise.
     - `mass`, `damping`: payload M (kg) and c (N s/m).
+    - `payload`: a payload law (:class:`jaxdea.Drag`, ... or a sum) instead of `damping`.
     - `band`: ``(f_lo, f_hi)`` Hz for ``"pmax"``; `freq`: Hz for the others.
     - `drive`, `phase`: the drive case.
     - `max_field`: largest nominal field at the static equilibrium, V/m.
@@ -178,19 +181,19 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
 
     An :class:`OptimiseResult` (the best feasible design found).
     """
-    bounds = _check_inputs(model, vary, objective, band, freq, starts, max_field, x0)
-    keys, full, pay = split_names(resolve(model, list(vary)))
+    bounds = _check_inputs(model, vary, objective, band, freq, starts, max_field, x0, payload)
+    keys, full, pay = split_names(resolve(model, list(vary), payload))
     lo = np.array([bounds[k][0] for k in keys])
     hi = np.array([bounds[k][1] for k in keys])
     n = len(keys)
     rng = np.random.default_rng(seed)
     u = (rng.permuted(np.tile(np.arange(starts), (n, 1)), axis=1).T
          + rng.random((starts, n))) / starts
-    model_vals = [_current(model, k, mass, damping, full, pay, keys) for k in keys]
+    model_vals = [_current(model, k, mass, damping, payload) for k in keys]
     first = np.array([(x0 or {}).get(k, v) for k, v in zip(keys, model_vals)], float)
     if np.all((lo <= first) & (first <= hi)):
         u[0] = (first - lo) / (hi - lo)
-    kw = dict(mass=mass, damping=damping, drive=drive, phase=phase)
+    kw = dict(mass=mass, damping=damping, drive=drive, phase=phase, payload=payload)
     if objective == "pmax":
         lo_f, hi_f = check_band(band)
         build = make_builder(model, full, pay, freq=np.linspace(lo_f, hi_f, grid), shift=True,
@@ -332,16 +335,20 @@ def _projected(x, g):
     return np.where(((x <= 0) & (g < 0)) | ((x >= 1) & (g > 0)), 0.0, g)
 
 
-def _current(model, key, mass, damping, full, pay, keys):
+def _current(model, key, mass, damping, payload=None):
+    if key == "mass" and mass is None and payload is not None:
+        return float(np.asarray(payload.mass))
     if key in ("mass", "damping"):
         return {"mass": mass, "damping": damping}[key] or 0.0
+    if key.startswith(LAW):
+        return law_value(payload, key)
     return float(list(get_params(model, [key]).values())[0])
 
 
 def _design(model, keys, full, theta):
     """The model with the model parameters among ``keys`` set to ``theta``."""
     return set_params(model, {k: float(t) for k, t in zip(keys, theta) if k not in
-                              ("mass", "damping")})
+                              ("mass", "damping") and not k.startswith(LAW)})
 
 
 def _metrics(build, theta, settings):
