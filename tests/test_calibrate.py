@@ -469,3 +469,25 @@ def test_sweep_netcdf_loads_as_frequency_response(tmp_path):
     d = load_data(tmp_path / "s.nc")
     assert isinstance(d, FrequencyResponse) and set(d.channels) == {"P_out", "amplitude"}
     np.testing.assert_allclose(d.mass, 2e-3)
+
+
+def test_payload_law_parameter_recovery(models):
+    """calibrate(payload=...) fits a payload law's parameter like a model's: the quadratic
+    drag coefficient of a hanging payload is recovered from its own P_out (3 frequencies)."""
+    from jaxdea.calibration.predictors import Loaded, frequency_response
+
+    predict = functools.partial(frequency_response, cycles=10, average=2)
+    rows = dict(f=np.array([40.0, 70.0, 100.0]), mass=np.full(3, 2e-3), damping=np.zeros(3))
+    truth = jaxdea.Drag(0.0, linear=0.1, quadratic=2.0) + jaxdea.Gravity(tilt=0.0)
+    p_out = predict(Loaded(models["scdea_ls"], truth),
+                    FrequencyResponse(**rows, amplitude=np.ones(3)))["P_out"]
+    data = FrequencyResponse(**rows, P_out=np.asarray(p_out))
+    start = jaxdea.Drag(0.0, linear=0.1, quadratic=0.5) + jaxdea.Gravity(tilt=0.0)
+    res = jaxdea.calibrate(models["scdea_ls"], data, ["payload.quadratic"], payload=start,
+                           bounds={"payload.quadratic": (0.01, 100.0)}, predict=predict)
+    assert res.params["payload.quadratic"] == pytest.approx(2.0, rel=1e-6)
+    assert float(jaxdea.payloads.parameters(res.payload)["quadratic"]) == pytest.approx(2.0,
+                                                                                        rel=1e-6)
+    assert isinstance(res.model, jaxdea.Model)
+    with pytest.raises(jaxdea.CalibrationError, match="unknown parameter"):
+        jaxdea.calibrate(models["scdea_ls"], data, ["payload.cubic"], payload=start)

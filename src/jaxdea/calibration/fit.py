@@ -130,6 +130,8 @@ class CalibrationResult:
     rel_std: dict[str, float] = field(default_factory=dict)  #: std / |value|
     flat: list[str] = field(default_factory=list)  #: parameters the data do not identify
     message: str = ""
+    #: the fitted payload law (fits with ``payload=``), else None
+    payload: Any = None
     #: the fit's objective (residuals, compiled derivatives) for inspection and checks
     objective: Any = field(default=None, repr=False)
 
@@ -175,7 +177,7 @@ def calibrate(model, data: Data, fit, *, bounds=None,
               predict: Callable | None = None, transforms=None, jac: str = "auto",
               maxiter: int | None = None, learning_rate: float = 0.05, tol: float = 1e-10,
               de_options=None, curvature: bool = True, flat_threshold: float = 0.5,
-              verbose: bool = False) -> CalibrationResult:
+              verbose: bool = False, payload=None) -> CalibrationResult:
     """Fit the parameters ``fit`` of ``model`` to ``data``.
 
     **Arguments:**
@@ -206,6 +208,11 @@ def calibrate(model, data: Data, fit, *, bounds=None,
     - `flat_threshold`: a relative 1-sigma above which a parameter is reported as not
       identified (``result.flat``).
     - `verbose`: print progress.
+    - `payload`: the payload law the data were measured with (:class:`jaxdea.Drag`, ... or
+      a sum; cone models and frequency responses only): the data's ``mass`` column is its
+      mass and its ``damping`` column is not used. Its parameters can be fitted as
+      ``"payload.<name>"`` (e.g. ``"payload.quadratic"``); the fitted law is
+      ``result.payload``.
 
     **Returns:**
 
@@ -234,6 +241,8 @@ def calibrate(model, data: Data, fit, *, bounds=None,
                         f"got {type(data).__name__}")
     if jac == "auto":
         jac = "rev" if isinstance(data, TimeSeries) else "fwd"
+    if payload is not None:
+        model = _loaded(model, data, payload)
     params = make_params(model, fit, bounds, transforms)
     if searches_box:
         open_ = [p.name for p in params if not (math.isfinite(p.ulo) and math.isfinite(p.uhi))]
@@ -272,4 +281,34 @@ def calibrate(model, data: Data, fit, *, bounds=None,
     if curvature:
         (res.curvature, res.covariance, res.std, res.rel_std,
          res.flat) = _curvature(obj, z, params, theta, final, flat_threshold, jac)
+    return _unloaded(res) if payload is not None else res
+
+
+def _loaded(model, data, payload):
+    """``model`` with the measurements' payload law (:class:`~.predictors.Loaded`)."""
+    from ..models.cone import Model
+    from ..payloads import PayloadLaw
+    from .predictors import Loaded
+
+    if not isinstance(model, Model) or not isinstance(data, FrequencyResponse):
+        raise CalibrationError("payload= is for a cone model (jaxdea.load_config) fitted to a "
+                               "frequency response")
+    if not isinstance(payload, PayloadLaw):
+        raise CalibrationError(f"payload must be a payload law (jaxdea.Drag, ...), got "
+                               f"{type(payload).__name__}")
+    return Loaded(model, payload.with_mass(0.0))
+
+
+def _unloaded(res: CalibrationResult) -> CalibrationResult:
+    """The result of a fit with a payload law: ``model`` the cone model, ``payload`` the
+    fitted law, and the names as given (``"actuator..."``, ``"payload.<name>"``)."""
+    back = {v: k for k, v in res.model.parameter_aliases.items()}
+
+    def name(n: str) -> str:
+        return back.get(n, n[len("model."):] if n.startswith("model.") else n)
+
+    res.model, res.payload = res.model.model, res.model.payload
+    for attr in ("params", "initial", "std", "rel_std"):
+        setattr(res, attr, {name(k): v for k, v in getattr(res, attr).items()})
+    res.flat = [name(n) for n in res.flat]
     return res

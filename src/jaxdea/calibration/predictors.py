@@ -8,21 +8,52 @@ data; :func:`default_predict` picks one (other model families register in :data:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._checks import CalibrationError, DataError
 from ..models.cone import Model
+from ..payloads import PayloadLaw
 from ..solver import LawsonRK4, SemilinearTerm
 from ..studies import transient as ve
 from ..studies.loadings import make_loadings
 from .data import FrequencyResponse, TimeSeries
 
-__all__ = ["PREDICTORS", "default_predict", "frequency_response", "transient_predictor"]
+__all__ = ["PREDICTORS", "Loaded", "default_predict", "frequency_response",
+           "transient_predictor"]
+
+
+class Loaded(eqx.Module):
+    """A cone model and the payload law its measurements were taken with: what
+    :func:`jaxdea.calibrate` fits when given ``payload=``, so that the law's parameters are
+    fitted like the model's (named ``"payload.<name>"``).
+
+    **Arguments:**
+
+    - `model`: the cone :class:`~jaxdea.Model`.
+    - `payload`: the payload law (its mass: the data's ``mass`` column; set to 0 here).
+    """
+
+    model: Model
+    payload: PayloadLaw
+
+    @property
+    def parameter_aliases(self) -> dict[str, str]:
+        """``"payload.<name>"`` -> the law parameter's full path (in a sum of laws:
+        ``"payload.parts.<i>.<name>"``)."""
+        out = {}
+        for i, law in enumerate(self.payload.laws):
+            base = "payload" if len(self.payload.laws) == 1 else f"payload.parts.{i}"
+            for f in dataclasses.fields(law):
+                if f.name != "mass":
+                    out[f"payload.{f.name}"] = f"{base}.{f.name}"
+        return out
 
 
 def frequency_response(model, data: FrequencyResponse, *, cycles: int = 20, average: int = 5,
@@ -40,7 +71,9 @@ def frequency_response(model, data: FrequencyResponse, *, cycles: int = 20, aver
 
     **Arguments:**
 
-    - `model`: a cone model (``jaxdea.Model``); its parameters may be traced.
+    - `model`: a cone model (``jaxdea.Model``), or a :class:`Loaded` model with the payload
+      law of the measurements (then the data's ``damping`` column is not used); its
+      parameters may be traced.
     - `data`: the frequency response whose rows (``f``, ``mass``, ``damping``) to compute.
     - `cycles`: drive periods from rest per row.
     - `average`: last periods over which the metrics are taken (``1 <= average <= cycles``).
@@ -57,14 +90,18 @@ def frequency_response(model, data: FrequencyResponse, *, cycles: int = 20, aver
     if points_per_cycle is None:
         points_per_cycle = int(2 * math.ceil(1.0 / (float(f.min()) * dt_max) / 2.0))
     ppc = max(int(points_per_cycle), 8)
+    payload = None
+    if isinstance(model, Loaded):
+        model, payload = model.model, model.payload.with_mass(0.0)
     act = model.actuator
-    loadings = make_loadings(model, data.mass, data.damping, f)
+    loadings = make_loadings(model, data.mass, None if payload is not None else data.damping,
+                             f, payload=payload)
     solver = LawsonRK4()
     term = SemilinearTerm(act.vector_field, act.linearisation)
-    y0 = act.initial_state()
     start = (cycles - average) * ppc
 
     def one(loading):
+        y0 = act.initial_state(loading.payload)  # with a weight or a preload: per row
         dt = 1.0 / loading.drive.frequency / ppc
 
         def step(y, k):
@@ -152,7 +189,7 @@ def default_predict(model, data) -> Callable:
     :func:`frequency_response` for a cone model and a frequency response, else the
     registered ``predict(model, data)``; :class:`~jaxdea.CalibrationError` if there is none.
     """
-    if isinstance(data, FrequencyResponse) and isinstance(model, Model):
+    if isinstance(data, FrequencyResponse) and isinstance(model, (Model, Loaded)):
         return frequency_response
     for (mcls, dcls), fn in PREDICTORS.items():
         if isinstance(model, mcls) and isinstance(data, dcls):

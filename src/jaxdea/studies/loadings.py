@@ -140,8 +140,8 @@ def check_payload(mass, damping, payload, axes: bool = False):
             value = getattr(law, f.name)
             where = f"payload.{f.name}" if len(payload.laws) == 1 else (
                 f"payload {type(law).__name__}.{f.name}")
-            if value is None and f.name == "anchor":
-                continue
+            if (value is None and f.name == "anchor") or isinstance(value, jax.core.Tracer):
+                continue  # unset anchor (set by the study); traced (fits, gradients)
             is_axis = axes and f.name != "mass" and np.ndim(value) == 1
             if is_axis:
                 axis_names.append(f.name)
@@ -154,6 +154,8 @@ def check_payload(mass, damping, payload, axes: bool = False):
     if len(axis_names) > 1:
         raise SweepError("payload: at most one law parameter may be an axis (1-D array), got "
                          f"{', '.join(axis_names)} (the CLI's --damping is the law's linear)")
+    if isinstance(payload.mass, jax.core.Tracer):
+        return finite_array("mass", mass, nonnegative=True), None, payload
     law_mass = float(np.asarray(payload.mass))
     if mass is None:
         mass = law_mass
