@@ -1,0 +1,137 @@
+"""A real 1/10 slice of paper 000's full power map, timed: the headline job measured, not projected.
+
+The full map is DCDEA-LS, drive A, 50 x 50 payloads (M 0.1-10 g, c 0.1-10 N s/m, log-spaced)
+x 996 frequencies (1-200 Hz every 0.2 Hz), 100 cycles from rest, last 5 averaged. This slice
+keeps every payload and every 10th frequency (1, 3, ..., 199 Hz: 100 frequencies, 250 000
+cells), so that its wall time x 10 is the full map's on this machine (the slice samples the
+frequency axis evenly, and a cell's cost depends on its frequency and payload only).
+
+Each protocol runs through ``jaxdea.powermap`` as a user would (one JAX device per core,
+chunked, a store on disk that a killed run resumes from), after a warm-up on a small grid
+that compiles the same chunk shape. The baseline, timed in the same run, is the independent
+scipy transcription (tests/scipy_reference.py, LSODA rtol 1e-8, every cell all 100 cycles)
+on cells sampled at stratum centres of the frequency axis (random payloads); it also checks
+the map's P_out and P_in there.
+
+    python bench/full_map_slice.py [--every 10] [--protocols paper,periodic] [--quick]
+        [--store DIR]   # keep the stores there (default: a temporary folder, removed)
+
+Ends with one line: RESULT key=value ... (``full_map_<protocol>_s`` = slice wall time x
+``every``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+import jaxdea  # noqa: E402
+import scipy_reference  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--every", type=int, default=10, help="keep every Nth frequency (1: full)")
+    ap.add_argument("--protocols", default="paper,periodic",
+                    help="comma-separated: paper (100 cycles, early exit), periodic")
+    ap.add_argument("--samples", type=int, default=8, help="LSODA cells")
+    ap.add_argument("--quick", action="store_true", help="5 x 5 payloads (smoke)")
+    ap.add_argument("--store", help="folder for the map stores (kept; default: temporary)")
+    args = ap.parse_args()
+    protocols = [p.strip() for p in args.protocols.split(",") if p.strip()]
+    if any(p not in ("paper", "periodic") for p in protocols) or not protocols:
+        sys.exit(f"--protocols must name paper and/or periodic, got {args.protocols!r}")
+    if args.every < 1:
+        sys.exit(f"--every must be >= 1, got {args.every}")
+    n_dev = jaxdea.use_cpu_cores()
+    n_pay = 5 if args.quick else 50
+    model = jaxdea.load_config(ROOT / "configs" / "dcdea_ls.toml")
+    mass, damping = np.logspace(-4, -2, n_pay), np.logspace(-1, 1, n_pay)
+    full_f = np.round(1.0 + 0.2 * np.arange(996), 6)
+    freq = full_f[::args.every]
+    folder = Path(args.store) if args.store else Path(tempfile.mkdtemp(prefix="jaxdea-slice-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    out: dict[str, str] = {"slice_cells": str(n_pay * n_pay * freq.size), "every": str(args.every),
+                           "devices": str(n_dev)}
+    maps, walls = {}, {}
+    try:
+        for protocol in protocols:
+            kw = dict(mass=mass, damping=damping, freq=freq, drive="A", protocol=protocol)
+            # compile the same chunk shape first (a small grid with the default chunking
+            # would compile a smaller chunk): one chunk's worth of cells, other payloads
+            t0 = time.perf_counter()
+            jaxdea.powermap(model, **{**kw, "mass": mass[:2] * 1.05, "damping": damping[:2],
+                                      "freq": freq[:min(freq.size, 8)]}, progress=False)
+            warm = time.perf_counter() - t0
+            store = folder / f"slice_{protocol}.zarr"
+            t0 = time.perf_counter()
+            ds = jaxdea.powermap(model, **kw, store=store, resume=store.exists())
+            wall = time.perf_counter() - t0
+            maps[protocol], walls[protocol] = ds, wall
+            ok = int(((ds.status == 0) & ds.steady).sum())
+            reused = ds.attrs["chunks_reused"]
+            print(f"{protocol}: {ds.P_out.size} cells in {wall:.1f} s on {n_dev} device(s) "
+                  f"({ds.P_out.size / wall:.0f} cells/s; warm-up incl. compile {warm:.1f} s; "
+                  f"{reused} chunk(s) reused from an interrupted run), steady with status 0: "
+                  f"{ok}/{ds.P_out.size}, mean cycles {ds.cycles_run.values.mean():.1f}; full "
+                  f"map x{args.every}: {wall * args.every / 60:.1f} min", flush=True)
+            out[f"full_map_{protocol}_s"] = f"{wall * args.every:.0f}"
+            out[f"slice_{protocol}_s"] = f"{wall:.1f}"
+            out[f"{protocol}_steady_ok"] = str(ok)
+            if reused:
+                out[f"{protocol}_chunks_reused"] = str(reused)
+        out.update(lsoda_check(maps, walls, mass, damping, freq, args.samples))
+        if len(maps) == 2:
+            a, b = maps["paper"], maps["periodic"]
+            both = ((a.status == 0) & a.steady & (b.status == 0) & b.steady).values
+            diff = np.abs(b.P_out.values / a.P_out.values - 1)[both]
+            print(f"periodic vs paper P_out over {int(both.sum())} cells steady in both: max "
+                  f"rel diff {diff.max():.1e}, median {np.median(diff):.1e}")
+            out["periodic_vs_paper_max_rel"] = f"{diff.max():.2e}"
+    finally:
+        if not args.store:
+            shutil.rmtree(folder, ignore_errors=True)
+    print("RESULT " + " ".join(f"{k}={v}" for k, v in out.items()))
+
+
+def lsoda_check(maps, walls, mass, damping, freq, samples) -> dict[str, str]:
+    """LSODA on sampled cells: its trajectories/s, the maps' errors there and the ratio of
+    LSODA's time for the slice (one core) to each protocol's wall time."""
+    rng = np.random.default_rng(0)
+    idx_f = ((np.arange(samples) + 0.5) * freq.size / samples).astype(int)
+    times, errs = [], {p: [] for p in maps}
+    for k in idx_f:
+        i, j = rng.integers(mass.size), rng.integers(damping.size)
+        t0 = time.perf_counter()
+        ref = scipy_reference.reference_metrics("dcdea_ls", float(mass[i]), float(damping[j]),
+                                                float(freq[k]), cycles=100, average=5,
+                                                rtol=1e-8)
+        times.append(time.perf_counter() - t0)
+        for p, ds in maps.items():
+            cell = ds.isel(M=i, c=j, f=k)
+            if int(cell.status) == 0 and bool(cell.steady):
+                errs[p].append(max(abs(float(cell.P_out) / ref["P_out"] - 1),
+                                   abs(float(cell.P_in) / ref["P_in"] - 1)))
+        print(f"lsoda: M {mass[i] * 1e3:.3g} g, c {damping[j]:.3g} N s/m, f {freq[k]:g} Hz: "
+              f"{times[-1]:.2f} s; " + ", ".join(
+                  f"{p} err {errs[p][-1]:.1e}" for p in maps if errs[p]), flush=True)
+    lsoda_tps = 1.0 / float(np.mean(times))
+    out = {"lsoda_traj_per_s": f"{lsoda_tps:.3f}"}
+    for p, ds in maps.items():
+        lsoda_s = float(ds.P_out.size) / lsoda_tps  # LSODA's time for the slice, one core
+        out[f"{p}_max_rel_err_vs_lsoda"] = f"{max(errs[p]):.2e}" if errs[p] else "nan"
+        out[f"{p}_lsoda_ratio"] = f"{lsoda_s / walls[p]:.0f}"
+    return out
+
+
+if __name__ == "__main__":
+    main()
