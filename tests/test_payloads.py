@@ -61,6 +61,22 @@ def _rel(a, b):
     return abs(a - b) / abs(b)
 
 
+def _compare(cfg, label, ds, mass, force, position_force, worst, failures):
+    """The sweep ``ds`` (at FREQS) against the scipy reference with the same payload forces:
+    the largest relative errors go to ``worst``, the ones above RTOL_POWER to ``failures``."""
+    for i, f in enumerate(FREQS):
+        r = ref.reference_metrics(cfg, mass, 0.0, f, cycles=CYCLES, average=AVERAGE, rtol=1e-9,
+                                  method="LSODA", force=force, position_force=position_force)
+        assert r["P_out"] >= 0.0
+        for name in ("P_out", "P_in"):
+            got = float(ds[name].values[i])
+            err = _rel(got, r[name])
+            worst[(label, name)] = max(worst.get((label, name), 0.0), err)
+            if not err <= RTOL_POWER:
+                failures.append(f"{label} {name} at {f:g} Hz: jaxdea {got:.6g} vs "
+                                f"scipy {r[name]:.6g} (rel err {err:.3%})")
+
+
 @pytest.mark.parametrize("cfg", CONFIGS)
 def test_drag_laws_match_scipy_reference(models, cfg):
     worst = {}
@@ -73,17 +89,7 @@ def test_drag_laws_match_scipy_reference(models, cfg):
         assert np.all(ds.P_out.values >= 0.0), (law_name, ds.P_out.values)
         assert ds.attrs["payload"] == "Drag" and ds.attrs["mass"] == MASS
         p_out[law_name] = ds.P_out.values
-        for i, f in enumerate(FREQS):
-            r = ref.reference_metrics(cfg, MASS, 0.0, f, cycles=CYCLES, average=AVERAGE,
-                                      rtol=1e-9, method="LSODA", force=force)
-            assert r["P_out"] >= 0.0
-            for name in ("P_out", "P_in"):
-                got = float(ds[name].values[i])
-                err = _rel(got, r[name])
-                worst[(law_name, name)] = max(worst.get((law_name, name), 0.0), err)
-                if not err <= RTOL_POWER:
-                    failures.append(f"{law_name} {name} at {f:g} Hz: jaxdea {got:.6g} vs "
-                                    f"scipy {r[name]:.6g} (rel err {err:.3%})")
+        _compare(cfg, law_name, ds, MASS, force, None, worst, failures)
     print(f"\n[{cfg}] max rel err: "
           + ", ".join(f"{law} {name} {v:.2e}" for (law, name), v in worst.items()))
     assert not failures, "; ".join(failures)
@@ -212,17 +218,7 @@ def test_loaded_payloads_match_scipy_reference(models, cfg):
                           average=AVERAGE)
         assert np.all(ds.status.values == 0), label
         assert np.all(ds.P_out.values > 0.0), (label, ds.P_out.values)
-        for i, f in enumerate(FREQS):
-            r = ref.reference_metrics(cfg, mass, 0.0, f, cycles=CYCLES, average=AVERAGE,
-                                      rtol=1e-9, method="LSODA", force=force,
-                                      position_force=position_force)
-            for name in ("P_out", "P_in"):
-                got = float(ds[name].values[i])
-                err = _rel(got, r[name])
-                worst[(label, name)] = max(worst.get((label, name), 0.0), err)
-                if not err <= RTOL_POWER:
-                    failures.append(f"{label} {name} at {f:g} Hz: jaxdea {got:.6g} vs "
-                                    f"scipy {r[name]:.6g} (rel err {err:.3%})")
+        _compare(cfg, label, ds, mass, force, position_force, worst, failures)
     print(f"\n[{cfg}] max rel err: "
           + ", ".join(f"{law} {name} {v:.2e}" for (law, name), v in worst.items()))
     assert not failures, "; ".join(failures)
