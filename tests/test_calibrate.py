@@ -491,3 +491,31 @@ def test_payload_law_parameter_recovery(models):
     assert isinstance(res.model, jaxdea.Model)
     with pytest.raises(jaxdea.CalibrationError, match="unknown parameter"):
         jaxdea.calibrate(models["scdea_ls"], data, ["payload.cubic"], payload=start)
+
+
+def test_cli_calibrate_fits_the_config_payload_law(tmp_path, capsys):
+    """jaxdea calibrate with a config's [payload] table: --fit payload.quadratic recovers the
+    load's drag coefficient and writes it back into the table, tagged fitted."""
+    from jaxdea.calibration.predictors import Loaded
+
+    cfg = Path(__file__).parents[1] / "configs" / "scdea_ls_loaded.toml"
+    model, law = jaxdea.load_config(cfg), jaxdea.load_payload(cfg)
+    truth = jaxdea.payloads.replace_parameters(law, quadratic=2.0).with_mass(0.0)
+    f = np.array([40.0, 70.0, 100.0])
+    rows = dict(f=f, mass=np.full(3, 2e-3), damping=np.zeros(3))
+    pred = frequency_response(Loaded(model, truth), FrequencyResponse(**rows, P_out=np.ones(3)),
+                              cycles=10, average=2)
+    csv = save_data(FrequencyResponse(**rows, P_out=np.asarray(pred["P_out"])),
+                    tmp_path / "fr.csv")
+    out = tmp_path / "fitted.toml"
+    rc = main(["calibrate", str(cfg), "--data", str(csv), "--fit", "payload.quadratic",
+               "--cycles", "10", "--average", "2", "--no-curvature", "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    fitted = tomllib.loads(out.read_text())["payload"]["quadratic"]
+    assert fitted == pytest.approx(2.0, rel=1e-6)
+    assert "quadratic = " in out.read_text() and "(fitted)" in out.read_text()
+    assert float(jaxdea.payloads.parameters(jaxdea.load_payload(out))["quadratic"]) == fitted
+    # a payload parameter the config's table does not hold cannot be written back
+    rc = main(["calibrate", str(CONFIG), "--data", str(csv), "--fit", "payload.quadratic",
+               "--quadratic", "1.0", "--out", str(tmp_path / "x.toml")])
+    assert rc == 2 and "payload.quadratic" in capsys.readouterr().err

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from .args import check_png
+from .payload import add_payload_args, cli_payload
 
 
 def parse_bounds(text: str | None) -> dict[str, tuple[float, float]]:
@@ -40,6 +41,7 @@ def _calibrate(args) -> int:
         make_params,
         write_fitted_config,
     )
+    from jaxdea.calibration.predictors import Loaded
     from jaxdea.models import Model
     from jaxdea.plotting import plot_fit
 
@@ -53,15 +55,31 @@ def _calibrate(args) -> int:
     data = load_data(args.data)
     fit = [n.strip() for n in args.fit.split(",") if n.strip()]
     bounds = parse_bounds(args.bounds)
-    start = get_params(model, fit)
+    # the payload law of the measurements: the config's [payload] table and the flags (its
+    # mass and, for the dashpot, its damping are the data's columns)
+    payload, _ = cli_payload(argparse.Namespace(**{**vars(args), "damping": None,
+                                                   "mass": None}))
+    target = model
+    if payload is not None:
+        if not (isinstance(data, FrequencyResponse) and isinstance(model, Model)):
+            raise ValueError("a payload law (a [payload] table or payload flags) is for a cone "
+                             "fitted to a frequency response")
+        target = Loaded(model, payload.with_mass(0.0))
+    law_fit = [n for n in fit if n.startswith("payload.")]
+    if law_fit:  # the fitted law values go back into the config's [payload] table
+        import tomllib
+
+        from jaxdea.calibration.fitted_toml import config_keys
+        config_keys(tomllib.loads(Path(args.config).read_text()), law_fit)
+    start = get_params(target, fit)
     if args.method == "de":  # DE needs a box: default one decade either side of the start
-        for name, v in start.items():
-            short = [k for k in bounds if name == k or name.endswith("." + k)]
+        for given, (name, v) in zip(fit, start.items()):
+            short = [k for k in bounds if k in (given, name) or name.endswith("." + k)]
             if not short:
                 if not (v > 0 and math.isfinite(v)):
-                    raise ValueError(f"--method de needs --bounds for {name} (start {v:g})")
-                bounds[name] = (v / 10.0, v * 10.0)
-    make_params(model, fit, bounds)  # validate before any compilation
+                    raise ValueError(f"--method de needs --bounds for {given} (start {v:g})")
+                bounds[given] = (v / 10.0, v * 10.0)
+    make_params(target, fit, bounds)  # validate before any compilation
     predict = None
     if isinstance(data, FrequencyResponse) and isinstance(model, Model):
         predict = functools.partial(frequency_response, cycles=args.cycles,
@@ -72,7 +90,7 @@ def _calibrate(args) -> int:
           flush=True)
     res = calibrate(model, data, fit, bounds=bounds or None, method=args.method,
                     loss=args.loss, seed=args.seed, predict=predict, maxiter=args.maxiter,
-                    de_options=de_options, curvature=not args.no_curvature)
+                    de_options=de_options, curvature=not args.no_curvature, payload=payload)
     print(res.summary())
     header = (f"fitted by: jaxdea calibrate --method {args.method} --loss {args.loss} "
               f"--data {args.data}\nloss {res.loss:.6g}, e_rms {res.e_rms:.3g} %, "
@@ -97,7 +115,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "damping); units in the header, e.g. 'f [Hz]'")
     c.add_argument("--fit", required=True,
                    help="comma-separated parameters to fit: paths or unique suffixes, e.g. "
-                        "dielectric.mu_A,dielectric.tau")
+                        "dielectric.mu_A,dielectric.tau, or a payload law's payload.NAME "
+                        "(needs the config's [payload] table to hold it)")
     c.add_argument("--method", default="lbfgs", choices=["lbfgs", "adam", "lm", "de"])
     c.add_argument("--loss", default="mse", choices=["mse", "relative", "log"])
     c.add_argument("--bounds", help="NAME=LO:HI,... in SI units (de default: start/10:start*10)")
@@ -110,7 +129,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="frequency responses: last periods averaged")
     c.add_argument("--no-curvature", action="store_true",
                    help="skip the Gauss-Newton curvature / covariance at the optimum")
-    c.add_argument("--out", required=True, help="fitted config (.toml)")
+    add_payload_args(c, ranges=False)
+    c.add_argument("--out", required=True, help="fitted config (.toml; fitted payload-law "
+                   "values, --fit payload.NAME, go to its [payload] table)")
     c.add_argument("--plot", help="optional PNG: measured vs model")
     c.set_defaults(func=_calibrate)
     return c

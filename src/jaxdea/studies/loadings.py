@@ -191,9 +191,10 @@ def anchor_payload(model: Model, payload):
     if payload is None or "anchor" not in parameters(payload) or parameters(
             payload)["anchor"] is not None:
         return payload
+    # a jax scalar, not a float: inside a transformation (a fit, a gradient) it is traced
     traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(model))
     return anchored(payload, model.actuator.rest_position() if traced
-                    else float(_rest_position(model.actuator)))
+                    else _rest_position(model.actuator))
 
 
 def cell_loadings(amplitude, frequency, duty, phase, mass, damping, payload=None,
