@@ -119,6 +119,19 @@ def test_cluster_map_equals_the_single_process_map_bit_for_bit(model, small_ref,
     _same_map(pm.powermap(model, **_axes(SMALL), **RUN, client=client), small_ref)
 
 
+def test_cli_on_an_existing_scheduler_equals_the_single_process_map(small_ref, client,
+                                                                    tmp_path, capsys):
+    """``jaxdea powermap --scheduler ADDRESS``: the CLI connects to a running cluster (here the
+    module's, by its scheduler's address, as a SLURM user would pass theirs) and writes the
+    same map bit for bit."""
+    store = tmp_path / "m.zarr"
+    rc = main(["powermap", CONFIG, *SMALL, *CLI_RUN, "--out", str(store),
+               "--scheduler", client.scheduler.address])
+    assert rc == 0, capsys.readouterr().err
+    assert "Dask cluster tcp://" in capsys.readouterr().out
+    _same_map(open_map(store), small_ref)
+
+
 def test_cluster_chunk_rule():
     assert cluster_units(100_000, 1, 2, 4096) == 4096  # capped at the single-process chunk
     assert cluster_units(10_000, 1, 2, 4096) == 1250  # ~4 chunks per worker

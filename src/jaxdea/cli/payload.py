@@ -30,7 +30,8 @@ def add_payload_args(p: argparse.ArgumentParser, ranges: bool) -> None:
     g = p.add_argument_group(
         "payload law (jaxdea.Drag + Elastic + Gravity; default: the config's [payload] table, "
         "else the linear dashpot --damping)"
-        + ("; one flag may be MIN:MAX:N[:log|:lin], the map's second axis" if ranges else ""))
+        + ("; one flag may be MIN:MAX:N[:log|:lin], the map's second axis (a range from a "
+           "negative value needs '=': --tilt=-1:1:5:lin)" if ranges else ""))
     for name, (_, _, text) in FLAGS.items():
         g.add_argument("--" + name.replace("_", "-"), dest=name,
                        type=str if ranges else float, help=text)
