@@ -303,3 +303,27 @@ def test_rotary_study_on_the_cluster_equals_one_call(client):
                                    equal_nan=True, err_msg=k)
     with pytest.raises(ValueError, match="chunk must be an integer >= 1"):
         jaxdea.rotary_study(model, ri, d, client=client, chunk=0)
+
+
+def test_de_population_on_the_cluster_equals_the_local_fit(client):
+    """DE(client=): each generation's population as slices on the workers (the objective
+    sent once per worker); the same seed gives the same fit as in this process."""
+    from functools import partial
+
+    from jaxdea.calibration import DE, FrequencyResponse, calibrate, frequency_response
+
+    model = jaxdea.load_config(ROOT / "configs" / "scdea_ls.toml")
+    predict = partial(frequency_response, cycles=6, average=2)
+    rows = dict(f=np.array([50.0, 90.0]), mass=np.full(2, 2e-3), damping=np.full(2, 0.1))
+    data = FrequencyResponse(**rows, P_out=np.asarray(
+        predict(model, FrequencyResponse(**rows, P_out=np.ones(2)))["P_out"]) * 1.1)
+    kw = dict(bounds={"dielectric.tau": (1e-3, 4e-3)}, predict=predict, curvature=False,
+              seed=1)
+    here = calibrate(model, data, ["dielectric.tau"], method=DE(population=6, generations=2),
+                     **kw)
+    there = calibrate(model, data, ["dielectric.tau"], method=DE(
+        population=6, generations=2, client=client, slices=3), **kw)
+    assert there.n_evals == here.n_evals == 18
+    assert there.params["actuator.membrane.dielectric.tau"] == pytest.approx(
+        here.params["actuator.membrane.dielectric.tau"], rel=1e-12)
+    assert there.loss == pytest.approx(here.loss, rel=1e-9)

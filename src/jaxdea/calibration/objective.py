@@ -82,6 +82,12 @@ class Objective:
         self.residual_z = lambda z: residual_u(u_of_z(z))
         self._cache: dict[str, Callable] = {}
 
+    def __getstate__(self) -> dict:
+        """Pickled without its compiled pieces (a Dask worker builds its own, once)."""
+        state = dict(self.__dict__)
+        state["_cache"] = {}
+        return state
+
     def fn(self, name: str) -> Callable:
         """A compiled piece, built on first use: ``"resid_z"`` (residuals of z), ``"jac_z"`` /
         ``"jacrev_z"`` (``(J, r)`` by forward / reverse mode), ``"vg_z"`` (loss and gradient),

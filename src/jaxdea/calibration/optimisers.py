@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import abc
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -275,6 +276,10 @@ class DE(AbstractOptimiser):
     - `tol`, `atol`: scipy's convergence tolerances (0: run all generations).
     - `init`: scipy's ``init`` (an initial population in u, or a scheme name); default a
       Latin hypercube of ``population`` members drawn with the fit's seed.
+    - `client`: a ``dask.distributed.Client``: each generation's population is evaluated as
+      ``slices`` tasks on its workers (the objective is sent once per worker and compiled
+      there once); default: in this process.
+    - `slices`: population slices per generation with a client (default: 2 per worker).
     """
 
     population: int = DE_PAPER["popsize"]
@@ -285,6 +290,8 @@ class DE(AbstractOptimiser):
     tol: float = 0.0
     atol: float = 0.0
     init: Any = field(default=None, compare=False)
+    client: Any = field(default=None, compare=False, repr=False)
+    slices: int | None = None
     name: ClassVar[str] = "de"
     searches_box: ClassVar[bool] = True
 
@@ -336,7 +343,8 @@ class DE(AbstractOptimiser):
         if init is None:
             init = qmc.scale(qmc.LatinHypercube(d=n, rng=np.random.default_rng(seed))
                              .random(pop), lo, hi)
-        batch = obj.fn("loss_u_batch")
+        batch = obj.fn("loss_u_batch") if self.client is None else _on_cluster(
+            self.client, obj, self.slices)
 
         def f(x):  # x: (n, S) -> (S,)
             vals = np.asarray(batch(jnp.asarray(x.T)))
@@ -360,6 +368,37 @@ class DE(AbstractOptimiser):
                                    "finite loss; check bounds and data")
         z = np.array([p.z_of_u(float(u)) for p, u in zip(obj.params, res.x)])
         return Solution(z, obj.theta_of_u(res.x), str(res.message), state)
+
+
+def _population_slice(obj: Objective, u: np.ndarray) -> np.ndarray:
+    """The losses of population members ``u`` (S, n) on a Dask worker (``obj`` is that
+    worker's one copy of the objective: its compiled loss is kept between generations)."""
+    return np.asarray(obj.fn("loss_u_batch")(jnp.asarray(u)))
+
+
+def _on_cluster(client, obj: Objective, slices: int | None) -> Callable:
+    """``u (S, n) -> losses (S,)`` evaluated as equal slices (the last padded by repeating
+    its last member), one task each, on the workers of ``client``."""
+    from ..studies.distributed import check_client
+
+    try:
+        n_workers = check_client(client)
+    except Exception as exc:  # noqa: BLE001 - a SweepError; calibration reports its own type
+        raise CalibrationError(str(exc)) from None
+    k = int(slices or 2 * n_workers)
+    if k < 1:
+        raise CalibrationError(f"DE slices must be >= 1, got {slices!r}")
+    remote = client.scatter(obj, broadcast=True)  # once per worker, kept there
+
+    def batch(u):
+        u = np.asarray(u)
+        size = -(-u.shape[0] // k)
+        parts = [u[np.minimum(np.arange(lo, lo + size), u.shape[0] - 1)]
+                 for lo in range(0, u.shape[0], size)]
+        futures = client.map(_population_slice, [remote] * len(parts), parts, pure=False)
+        return np.concatenate(client.gather(futures))[:u.shape[0]]
+
+    return batch
 
 
 #: ``calibrate``'s method names and their optimisers.
