@@ -253,7 +253,7 @@ class Combined(PayloadLaw):
 
     @property
     def mass(self):
-        return sum(p.mass for p in self.parts[1:]) + self.parts[0].mass
+        return sum(p.mass for p in self.parts)
 
     @property
     def loads_at_rest(self) -> bool:
@@ -264,12 +264,10 @@ class Combined(PayloadLaw):
         return tuple(self.parts)
 
     def _force(self, x, v, mass):
-        return sum(p._force(x, v, mass) for p in self.parts[1:]) + self.parts[0]._force(
-            x, v, mass)
+        return sum(p._force(x, v, mass) for p in self.parts)
 
     def dissipated_power(self, v: ArrayLike) -> Array:
-        return sum(p.dissipated_power(v) for p in self.parts[1:]) + self.parts[
-            0].dissipated_power(v)
+        return sum(p.dissipated_power(v) for p in self.parts)
 
     def with_mass(self, mass: ArrayLike) -> Combined:
         """The same sum with ``mass`` on its first law and none on the others."""

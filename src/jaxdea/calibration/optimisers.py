@@ -379,7 +379,7 @@ def _population_slice(obj: Objective, u: np.ndarray) -> np.ndarray:
 def _on_cluster(client, obj: Objective, slices: int | None) -> Callable:
     """``u (S, n) -> losses (S,)`` evaluated as equal slices (the last padded by repeating
     its last member), one task each, on the workers of ``client``."""
-    from ..studies.distributed import check_client
+    from ..studies.distributed import check_client, padded_cells
 
     try:
         n_workers = check_client(client)
@@ -393,8 +393,7 @@ def _on_cluster(client, obj: Objective, slices: int | None) -> Callable:
     def batch(u):
         u = np.asarray(u)
         size = -(-u.shape[0] // k)
-        parts = [u[np.minimum(np.arange(lo, lo + size), u.shape[0] - 1)]
-                 for lo in range(0, u.shape[0], size)]
+        parts = [u[padded_cells(lo, size, u.shape[0])] for lo in range(0, u.shape[0], size)]
         futures = client.map(_population_slice, [remote] * len(parts), parts, pure=False)
         return np.concatenate(client.gather(futures))[:u.shape[0]]
 

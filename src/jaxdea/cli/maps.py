@@ -81,8 +81,11 @@ def _powermap(args) -> int:
         damping = parse_points(damping, "--damping")
         second, label = damping.size, "c"
     else:
-        axis = [k for k, v in _law_values(payload).items() if np.ndim(v) == 1]
-        second, label = (np.size(_law_values(payload)[axis[0]]), axis[0]) if axis else (1, "")
+        from jaxdea.payloads import parameters
+
+        axis = {k: v for k, v in parameters(payload).items() if np.ndim(v) == 1}
+        label = next(iter(axis), "")
+        second = np.size(axis[label]) if axis else 1
     freq = parse_range(args.freq, "--freq")
     phase = parse_phases(args.phase) if args.phase is not None else None
     check_png(args.plot)
@@ -142,12 +145,6 @@ def _need_payload(args, payload, damping) -> None:
                          "table with its mass in the config")
 
 
-def _law_values(payload) -> dict:
-    from jaxdea.payloads import parameters
-
-    return parameters(payload)
-
-
 def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client=None,
                   payload=None):
     return jaxdea.powermap(model, mass=mass, damping=damping, payload=payload, freq=freq,
@@ -172,7 +169,7 @@ def _print_not_steady(ds) -> None:
 
 
 def _summarise_map(ds, out, plot) -> int:
-    from jaxdea.plotting import plot_pmax
+    from jaxdea.plotting import law_dim, plot_pmax
 
     bad = int((ds["status"] != 0).sum())
     pmax = ds["P_max"]
@@ -180,7 +177,7 @@ def _summarise_map(ds, out, plot) -> int:
         flat = int(np.argmax(np.nan_to_num(pmax.values, nan=-np.inf)))
         best = dict(zip(pmax.dims, np.unravel_index(flat, pmax.shape)))
         at = {k: float(ds[k][v]) for k, v in best.items()}
-        law = next(k for k in at if k not in ("M", "phase"))
+        law = law_dim(ds)
         unit = ds[law].attrs.get("units", "")
         print(f"wrote {out}: P_max (steady cells) {1e3 * float(pmax.isel(best)):.3f} mW at "
               f"M = {1e3 * at['M']:g} g, {law} = {at[law]:g} {unit}"

@@ -113,12 +113,6 @@ def _start_is_config(model, vary, mapping, args, payload=None) -> bool:
     return True
 
 
-def _law_flags(args) -> bool:
-    from .payload import FLAGS
-
-    return any(getattr(args, k, None) is not None for k in FLAGS)
-
-
 def _what(objective: str, result, args, band) -> str:
     """The objective at the optimum, in words and units."""
     if objective == "pmax":
@@ -142,8 +136,7 @@ def _optimise(args) -> int:
     check_png(args.plot)
     vary = parse_vary(args.vary)
     band = _check_objective(args)
-    payload, damping = cli_payload(args) if args.damping is None or _law_flags(args) else (
-        None, args.damping)
+    payload, damping = cli_payload(args)
     _check_numbers(args, vary, payload)
     model = jaxdea.load_config(args.config)
     check_cone_model(model)

@@ -62,10 +62,8 @@ def cli_payload(args, ranges: bool = False):
     if not given and (table is None or damping is not None):
         return None, damping
     law = table if table is not None else Drag(0.0)
-    if table is not None and getattr(args, "mass", None) is not None and not ranges:
-        law = law.with_mass(0.0)  # --mass overrides the table's mass
-    if ranges:
-        law = law.with_mass(0.0)  # the map's M axis is --mass
+    if ranges or getattr(args, "mass", None) is not None:
+        law = law.with_mass(0.0)  # --mass (a map's M axis) overrides the table's mass
     values = {"linear": _value(damping, "--damping", ranges)} if damping is not None else {}
     kinds = {type(x).__name__ for x in law.laws}
     for name, text in given.items():

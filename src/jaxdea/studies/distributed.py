@@ -52,6 +52,13 @@ CHUNKS_PER_WORKER = 4
 MIN_CLUSTER_CHUNK = 256
 
 
+def padded_cells(lo: int, size: int, n: int) -> np.ndarray:
+    """The indices of the chunk of ``size`` cells from ``lo`` out of ``n``, past the last cell
+    repeating it: every chunk of a batch has one shape (one compiled program); the caller
+    drops the padding's results."""
+    return np.minimum(np.arange(lo, lo + size), n - 1)
+
+
 def run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, successor, cycles,
               average, control, tol, early_exit) -> dict[str, np.ndarray]:
     """One chunk's results; ``successor`` (continuation) is the pattern of one device's
@@ -102,7 +109,7 @@ def compute_part(job: ChunkJob, i: int) -> dict[str, Any]:
     use_cpu_cores(1)  # a fresh worker process: one device (no-op once JAX has started)
     t0 = time.perf_counter()
     lo, hi = job.cells(i)
-    idx = np.minimum(np.arange(lo, lo + job.chunk), hi - 1)  # pad: repeat the last cell
+    idx = padded_cells(lo, job.chunk, hi)
     out = run_chunk(job.model, job.grid.loadings(idx), tuple(jax.devices())[:1], **job.run)
     got = {k: v[: hi - lo] for k, v in out.items()}
     receipt: dict[str, Any] = {"chunk": i, "cells": (lo, hi), "pid": os.getpid()}

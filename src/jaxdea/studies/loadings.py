@@ -23,6 +23,7 @@ from ..payloads import (
     PayloadLaw,
     anchored,
     parameters,
+    replace_parameters,
 )
 from ..signals import SquareWave
 
@@ -169,8 +170,6 @@ def check_payload(mass, damping, payload, axes: bool = False):
 def cell_payload(payload, mass, n: int, **values):
     """``payload`` (scalar parameters) for ``n`` cells with masses ``mass`` ``(n,)``, kg, and
     any law parameter given in ``values`` as an ``(n,)`` array."""
-    from ..payloads import replace_parameters
-
     cells = jax.tree_util.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)),
         replace_parameters(payload, **{k: 0.0 for k in values}) if values else payload)
@@ -279,11 +278,12 @@ def make_loadings(model: Model, mass, damping, freq, drive: str = "A",
         mass, 0.0 if damping is None else damping, freq))
     n = f.size
     # jnp arithmetic on the model's voltage and duty: they may be traced (calibration)
+    if payload is not None:  # the loaded rest exists: once per distinct mass, not per cell
+        masses = np.unique(m)
+        check_rest(model, cell_payload(payload, masses, masses.size))
     amp = jnp.broadcast_to(jnp.asarray(on)[None, :] * model.voltage, (n, on.size))
-    loadings = cell_loadings(amp, f, model.duty, jnp.broadcast_to(jnp.asarray(phases),
-                                                                   (n, on.size)), m, c, payload)
-    check_rest(model, loadings.payload)
-    return loadings
+    return cell_loadings(amp, f, model.duty, jnp.broadcast_to(jnp.asarray(phases), (n, on.size)),
+                         m, c, payload)
 
 
 @dataclass

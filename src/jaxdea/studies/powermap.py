@@ -56,6 +56,7 @@ from .distributed import (
     ChunkJob,
     check_client,
     cluster_units,
+    padded_cells,
     queue_order,
     run_chunk,
     run_on_cluster,
@@ -148,13 +149,6 @@ def _model_settings(model: Model) -> dict[str, Any]:
 
 _run_chunk = run_chunk  # one chunk in this process (tests replace it)
 
-
-def _signed(payload) -> set[str]:
-    return {n for law in payload.laws for n in law.signed_fields}
-
-
-def _positive(payload) -> set[str]:
-    return {n for law in payload.laws for n in law.positive_fields}
 
 
 def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
@@ -256,9 +250,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
                              "jaxdea.Drag(quadratic=[0.1, 1.0, 10.0]) (a single value: [x])")
         (law_axis, values), = varied.items()
         axes = {"M": _axis("mass", mass, nonnegative=True),
-                law_axis: _axis(f"payload.{law_axis}", values,
-                                nonnegative=law_axis not in _signed(payload),
-                                positive=law_axis in _positive(payload))}
+                law_axis: _axis(f"payload.{law_axis}", values)}  # its range: check_payload
     axes["f"] = _axis("freq", freq, positive=True)
     if phase is not None:
         if drive != "both":
@@ -363,8 +355,8 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
                 else:
                     if i in done:  # unreadable part: count it as computed work
                         bar.total += 1
-                    idx = np.minimum(np.arange(lo, lo + chunk), hi - 1)  # pad: repeat last cell
-                    out = _run_chunk(model, grid.loadings(idx), devices, **run)
+                    out = _run_chunk(model, grid.loadings(padded_cells(lo, chunk, hi)),
+                                     devices, **run)
                     got = {k: v[: hi - lo] for k, v in out.items()}
                     if parts is not None:
                         parts.save(i, got, cells=(lo, hi))

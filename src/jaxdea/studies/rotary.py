@@ -146,14 +146,14 @@ def _study_cells(model: RotaryDCDEA, ri: np.ndarray, d: np.ndarray) -> tuple[np.
 def _on_cluster(client, model, ri: np.ndarray, d: np.ndarray, chunk: int | None):
     """The flat cells in equal chunks (the last padded by repeating its last cell), one Dask
     task each, the results put back in cell order."""
-    from .distributed import check_client
+    from .distributed import CHUNKS_PER_WORKER, check_client, padded_cells
 
     n_workers = check_client(client)
     n = ri.size
-    chunk = int(chunk or max(1, -(-n // (4 * n_workers))))  # ~4 tasks per worker
+    chunk = int(chunk or max(1, -(-n // (CHUNKS_PER_WORKER * n_workers))))
     futures = []
     for lo in range(0, n, chunk):
-        idx = np.minimum(np.arange(lo, lo + chunk), n - 1)
+        idx = padded_cells(lo, chunk, n)
         futures.append(client.submit(_study_cells, model, ri[idx], d[idx], pure=False))
     parts = client.gather(futures)
     return tuple(np.concatenate([p[k] for p in parts])[:n] for k in range(len(parts[0])))
@@ -172,7 +172,8 @@ def rotary_study(model: RotaryDCDEA, ri: ArrayLike, d: ArrayLike, *, client=None
     - `d`: half spacer lengths d, m (1-D).
     - `client`: a ``dask.distributed.Client``: the cells run as tasks on its workers, in
       equal chunks (the same numbers as one call, to the last bits of XLA's vectorisation).
-    - `chunk`: cells per task (default: about 4 tasks per worker).
+    - `chunk`: cells per task (default: about
+      :data:`~jaxdea.studies.distributed.CHUNKS_PER_WORKER` tasks per worker).
 
     **Returns:**
 
