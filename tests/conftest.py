@@ -54,7 +54,7 @@ def models():
 #: notebook per subprocess, a configuration per gradient check), so keeping them together
 #: saves nothing and puts minutes of work on one worker. They are queued first (the longest
 #: work first keeps the two workers' finishing times close).
-SPREAD = ("test_design_gradients.py", "test_notebooks.py")
+SPREAD = ("test_design_gradients.py", "test_notebooks.py", "test_paper000.py")
 
 
 def _module(nodeid: str) -> str:

@@ -12,7 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 TEXTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
          *sorted((ROOT / "notebooks").glob("*.ipynb"))]
-WINGS = "models|engine|studies|calibration|config|cli"
+WINGS = "models|engine|studies|calibration|config|cli|reproduce"
 NAME = re.compile(r"`(jaxdea(?:\.[A-Za-z_]\w*)+)")
 #: a name written relative to the package, e.g. `engine.periodic.SHOOTING_LANES`
 SHORT = re.compile(rf"`((?:{WINGS})\.(?!md`)[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*)")

@@ -34,6 +34,7 @@ WINGS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("studies", ("studies",)),
     ("calibration", ("calibration",)),
     ("plotting", ("plotting",)),
+    ("reproduce", ("reproduce",)),
     ("api", ("",)),
     ("cli", ("cli",)),
 )

@@ -1,5 +1,5 @@
 """``jaxdea`` command line: ``jaxdea sweep|powermap|plot|rotary-study|calibrate|simulate|
-optimise ...`` (see ``jaxdea COMMAND --help``)."""
+optimise|reproduce ...`` (see ``jaxdea COMMAND --help``)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import argparse
 import sys
 import warnings
 
-from . import calibrate, maps, optimise, rotary, simulate
+from . import calibrate, maps, optimise, reproduce, rotary, simulate
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -17,7 +17,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxdea", description=__doc__)
     p.add_argument("--version", action="version", version=f"jaxdea {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    for group in (maps, rotary, calibrate, simulate, optimise):
+    for group in (maps, rotary, calibrate, simulate, optimise, reproduce):
         group.add_parsers(sub)
     for command in sub.choices.values():  # every --help shows the defaults
         command.formatter_class = argparse.ArgumentDefaultsHelpFormatter
