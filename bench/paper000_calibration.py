@@ -8,9 +8,14 @@ gradient; every candidate then checked with the same 100-cycle search. Every eva
 is kept in --log (a rerun resumes DE from the best designs seen). Ends with one
 ``RESULT de_evals=... de_s=... lbfgs_evals=... lbfgs_s=... loss=... claims_met=.../...``.
 
-    python bench/paper000_calibration.py                 # ~1 h on 2 cores
+    python bench/paper000_calibration.py                 # ~80 min on 2 cores
     python bench/paper000_calibration.py --population 12 --generations 2 --starts 1 \
         --lbfgs-iterations 2 --out /tmp/p0                # a smoke run
+
+It writes into --out (default out/paper000_calibration, never the committed set). The set in
+configs/paper000 came from two invocations sharing one log: ``--starts 0`` (DE only), then
+``--generations 0 --starts 2`` (L-BFGS from the log's best distinct DE designs), with
+``--out configs/paper000``; docs/paper000.md has their figures.
 """
 
 from __future__ import annotations
@@ -42,14 +47,16 @@ def main() -> None:
     ap.add_argument("--starts", type=int, default=FitPlan.starts)
     ap.add_argument("--lbfgs-iterations", type=int, default=FitPlan.lbfgs_iterations)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--log", default="paper000_calibration.npz")
-    ap.add_argument("--out", default=str(ROOT / "configs" / "paper000"))
+    ap.add_argument("--out", default="out/paper000_calibration")
+    ap.add_argument("--log", default=None, help="evaluation log (.npz; default OUT/log.npz); "
+                                                "an existing one is resumed")
     args = ap.parse_args()
     t0 = time.time()
     plan = FitPlan(population=args.population, generations=args.generations,
                    starts=args.starts, lbfgs_iterations=args.lbfgs_iterations, seed=args.seed)
     models = load_models(ROOT)
-    r = calibrate_paper000(models, plan, log=args.log)
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    r = calibrate_paper000(models, plan, log=args.log or str(Path(args.out) / "log.npz"))
     obj = r["objective"]
     qs = {k: np.asarray(v)[-len(r["candidates"]):] for k, v in obj.quantities.items()}
     best = int(np.argmin(r["candidate_losses"]))

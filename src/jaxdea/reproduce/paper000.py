@@ -74,7 +74,7 @@ class FitPlan:
     de_search: PeakSearch = PeakSearch(band=(30.0, 200.0), coarse=5.0, cycles=60,
                                        early_exit=1e-6)
     starts: int = 2
-    lbfgs_iterations: int = 12
+    lbfgs_iterations: int = 8
     search: PeakSearch = PeakSearch(band=(30.0, 200.0), coarse=4.0)
     seed: int = 0
 
