@@ -18,12 +18,39 @@ import numpy as np
 from .._checks import CalibrationError, DataError
 from ..params import Param, with_theta
 
-__all__ = ["LOSSES", "Objective"]
+__all__ = ["LOSSES", "Objective", "ParameterSpace"]
 
 LOSSES = ("mse", "relative", "log")
 
 
-class Objective:
+class ParameterSpace:
+    """The three spaces of fitted parameters ``params`` (a list of
+    :class:`~jaxdea.params.Param`): theta (their units), u (the box: log or linear) and z
+    (unconstrained). What the optimisers of :mod:`.optimisers` read of an objective besides
+    its loss: :class:`Objective` and any other objective (e.g.
+    :class:`jaxdea.reproduce.ClaimsObjective`) share it."""
+
+    params: list[Param]
+
+    def u_of_z(self, z):
+        """Box values of a point in z (traceable)."""
+        return jnp.stack([p.u_of_z(z[i]) for i, p in enumerate(self.params)])
+
+    def z0(self) -> np.ndarray:
+        """The start values in z."""
+        return np.array([p.z_of_u(float(p.u_of_theta(p.init))) for p in self.params])
+
+    def theta_of_z(self, z) -> np.ndarray:
+        """Parameter values (their units) of a point in z."""
+        u = np.asarray(self.u_of_z(jnp.asarray(z)))
+        return np.array([float(p.theta_of_u(u[i])) for i, p in enumerate(self.params)])
+
+    def theta_of_u(self, u) -> np.ndarray:
+        """Parameter values (their units) of a point in u."""
+        return np.array([float(p.theta_of_u(u[i])) for i, p in enumerate(self.params)])
+
+
+class Objective(ParameterSpace):
     """Residuals, loss and derivatives of a fit in u (box) and z (unconstrained) space.
 
     **Arguments:**
@@ -74,12 +101,8 @@ class Objective:
                 parts.append(r * self.weights[k])
             return jnp.concatenate(parts)
 
-        def u_of_z(z):
-            return jnp.stack([p.u_of_z(z[i]) for i, p in enumerate(params)])
-
         self.residual_u = residual_u
-        self.u_of_z = u_of_z
-        self.residual_z = lambda z: residual_u(u_of_z(z))
+        self.residual_z = lambda z: residual_u(self.u_of_z(z))
         self._cache: dict[str, Callable] = {}
 
     def __getstate__(self) -> dict:
@@ -124,19 +147,6 @@ class Objective:
             else:
                 out[k] = y * np.exp(rk)
         return out
-
-    def z0(self) -> np.ndarray:
-        """The start values in z."""
-        return np.array([p.z_of_u(float(p.u_of_theta(p.init))) for p in self.params])
-
-    def theta_of_z(self, z) -> np.ndarray:
-        """Parameter values (their units) of a point in z."""
-        u = np.asarray(self.u_of_z(jnp.asarray(z)))
-        return np.array([float(p.theta_of_u(u[i])) for i, p in enumerate(self.params)])
-
-    def theta_of_u(self, u) -> np.ndarray:
-        """Parameter values (their units) of a point in u."""
-        return np.array([float(p.theta_of_u(u[i])) for i, p in enumerate(self.params)])
 
     def jacobian(self, z, jac: str):
         """``(J, r)``: residual Jacobian in z and the residuals, by ``jac`` mode."""

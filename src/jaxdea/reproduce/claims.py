@@ -3,8 +3,9 @@ built from them (Sections III-IV of seed 000; the readings are in ``docs/paper00
 
 A claim rests on *quantities* of a peak table (:func:`jaxdea.reproduce.peaks.peak_table`),
 named ``"P:<case>:<c>"`` (P_max, W), ``"f:<case>:<c>"`` (its frequency, Hz), ``"L:<case>:<c>"``
-and ``"fL:<case>:<c>"`` (a local maximum and its frequency) and ``"eta:<case>:<c>"`` (the
-efficiency at the peak). Two kinds:
+and ``"fL:<case>:<c>"`` (a local maximum and its frequency), ``"Pin:<case>:<c>"`` (P_in at
+the peak) and, derived from those (:func:`derive`), ``"eta:<case>:<c>"`` (the efficiency at
+the peak) and ``"R:DCDEA-RR-anti:<c>"`` (antiphase over single actuation). Two kinds:
 
 - :class:`Near`: a published value, met within a relative (or, for a frequency, absolute)
   tolerance; its loss term is the squared error in units of the tolerance,
@@ -26,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["CLAIMS", "LIGHT", "HEAVY", "MASS", "Above", "Claim", "Near", "claim_terms",
-           "loss", "met", "quantities_of"]
+           "derive", "loss", "met", "quantities_of"]
 
 #: Paper 000's light and heavy payload damping (N s/m) and the payload mass of Figs 8-11 (kg).
 LIGHT, HEAVY, MASS = 0.1, 10.0, 2e-3
@@ -161,21 +162,33 @@ CLAIMS: tuple[Claim, ...] = (
 
 
 def quantities_of(table: dict, dampings=(LIGHT, HEAVY)) -> dict[str, np.ndarray]:
-    """The named quantities (arrays over designs) of a peak table: ``P``, ``f``, ``eta``
-    per case and damping, ``L`` / ``fL`` of its local maxima and the ratio ``R`` of
-    DCDEA-RR antiphase to single actuation."""
+    """The named quantities (arrays over designs) of a peak table: ``P``, ``f`` and
+    ``Pin`` (P_in at the peak) per case and damping, ``L`` / ``fL`` of its local maxima, and
+    what :func:`derive` computes from them."""
     out = {}
     for case, p in table["P_max"].items():
         for j, c in enumerate(dampings):
             out[q("P", case, c)] = p[:, j]
             out[q("f", case, c)] = table["f"][case][:, j]
-            out[q("eta", case, c)] = p[:, j] / table["P_in"][case][:, j]
+            out[q("Pin", case, c)] = table["P_in"][case][:, j]
     for (case, c), (p, f) in table["local"].items():
         out[q("L", case, c)], out[q("fL", case, c)] = p, f
-    for j, c in enumerate(dampings):
-        if RRX in table["P_max"] and RR in table["P_max"]:
-            out[q("R", RRX, c)] = table["P_max"][RRX][:, j] / table["P_max"][RR][:, j]
+    derive(out, dampings)
     return out
+
+
+def derive(qs: dict, dampings=(LIGHT, HEAVY)) -> None:
+    """Fill, in place, the quantities computed from others: the efficiency at each peak
+    ``eta = P / Pin`` and the ratio ``R`` of DCDEA-RR antiphase to single actuation (after
+    a peak's P or Pin was replaced, call it again)."""
+    for key in list(qs):
+        if key.startswith("Pin:"):
+            _, case, c = key.split(":")
+            qs[f"eta:{case}:{c}"] = qs[f"P:{case}:{c}"] / qs[key]
+    for c in dampings:
+        a, b = q("P", RRX, c), q("P", RR, c)
+        if a in qs and b in qs:
+            qs[q("R", RRX, c)] = qs[a] / qs[b]
 
 
 def claim_terms(claim: Claim, qs: dict) -> list:

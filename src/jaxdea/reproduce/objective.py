@@ -2,9 +2,10 @@
 constants, for jaxdea's own optimisers (:class:`jaxdea.calibration.DE`, :class:`LBFGS`).
 
 :class:`ClaimsObjective` offers what those optimisers use of
-:class:`jaxdea.calibration.Objective`: ``params`` (the fitted parameters, log-transformed and
-bounded), ``fn("loss_u_batch")`` (the losses of a DE population, one batched peak table),
-``z0``, ``theta_of_u``, ``theta_of_z`` and ``value_and_grad``. Its gradient is exact in
+:class:`jaxdea.calibration.Objective`: the parameter spaces of
+:class:`~jaxdea.calibration.objective.ParameterSpace` (``params``, log-transformed and bounded,
+``z0``, ``theta_of_u``, ``theta_of_z``), ``fn("loss_u_batch")`` (the losses of a DE
+population, one batched peak table) and ``value_and_grad``. Its gradient is exact in
 P_max: the peak table locates every peak, the periodic orbits at those frequencies are solved
 with their implicit derivatives (:func:`jaxdea.engine.sensitivity.solve_designs`), and the
 envelope theorem gives ``dP_max/dtheta = dP/dtheta`` at f*; the peak frequencies enter the
@@ -27,10 +28,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..calibration.objective import ParameterSpace
 from ..engine.sensitivity import METRICS, solve_designs
 from ..params import make_params
 from ..studies.design import DESIGN_STEADY
-from .claims import CLAIMS, HEAVY, LIGHT, MASS, loss, q, quantities_of
+from .claims import CLAIMS, HEAVY, LIGHT, MASS, derive, loss, q, quantities_of
 from .peaks import CASES, PeakSearch, case_builder, peak_table
 
 __all__ = ["ClaimsObjective", "LOCAL"]
@@ -39,7 +41,7 @@ __all__ = ["ClaimsObjective", "LOCAL"]
 LOCAL = {("DCDEA-LS-A", LIGHT): (50.0, 95.0)}
 
 
-class ClaimsObjective:
+class ClaimsObjective(ParameterSpace):
     """The claims loss as a function of the fitted parameters.
 
     **Arguments:**
@@ -63,32 +65,18 @@ class ClaimsObjective:
         self.log = None if log is None else Path(log)
         self.records: dict[str, list] = {"theta": [], "loss": [], "t": [], "stage": []}
         self.quantities: dict[str, list] = {}
-        self.n_evals = 0
         self.no_gradient: list[str] = []  # peaks with no stable periodic orbit (L-BFGS)
         self.stage = "de"
         self._t0 = time.time()
         if self.log is not None and self.log.exists():
             self._load()
 
-    # --- parameter spaces (as calibration.Objective) -----------------------------------
-    def z0(self) -> np.ndarray:
-        return np.array([p.z_of_u(float(p.u_of_theta(p.init))) for p in self.params])
-
-    def u_of_z(self, z):
-        return jnp.stack([p.u_of_z(z[i]) for i, p in enumerate(self.params)])
-
-    def theta_of_u(self, u) -> np.ndarray:
-        return np.array([float(p.theta_of_u(u[i])) for i, p in enumerate(self.params)])
-
-    def theta_of_z(self, z) -> np.ndarray:
-        return self.theta_of_u(np.asarray(self.u_of_z(jnp.asarray(z))))
-
     # --- evaluations --------------------------------------------------------------------
-    def table(self, theta, search: PeakSearch | None = None) -> dict:
-        """The peak table of designs ``theta`` (K, n)."""
+    def table(self, theta) -> dict:
+        """The peak table of designs ``theta`` (K, n) by ``self.search``."""
         return peak_table(self.models, self.fit, theta, mass=self.mass,
-                          dampings=self.dampings, cases=tuple(CASES),
-                          search=search or self.search, local=LOCAL)
+                          dampings=self.dampings, cases=tuple(CASES), search=self.search,
+                          local=LOCAL)
 
     def losses(self, theta) -> np.ndarray:
         """The losses of designs ``theta`` (K, n), logged."""
@@ -117,7 +105,7 @@ class ClaimsObjective:
             qs = {k: jnp.asarray(v) for k, v in qs0.items()}
             for i, k in enumerate(names):
                 qs[k] = x[i][None]
-            _derived(qs, self.dampings)
+            derive(qs, self.dampings)
             return loss(qs, self.claims)[0]
 
         x = jnp.asarray([values[k] for k in names])
@@ -128,7 +116,7 @@ class ClaimsObjective:
         qs = {k: np.asarray(v) for k, v in qs0.items()}
         for k in names:
             qs[k] = np.array([values[k]])
-        _derived(qs, self.dampings)
+        derive(qs, self.dampings)
         self._record(theta[None], np.array([float(val)]), qs)
         g = dl_dtheta @ dtheta_dz
         return float(val), np.where(np.isfinite(g), g, np.nan)
@@ -159,8 +147,7 @@ class ClaimsObjective:
                     self.no_gradient.append(key)
                     values[key], grads[key] = float(qs0[key][0]), np.zeros(theta.size)
                     if kind == "P":
-                        values[pin] = float(qs0[key][0] / qs0[q("eta", case, c)][0])
-                        grads[pin] = np.zeros(theta.size)
+                        values[pin], grads[pin] = float(qs0[pin][0]), np.zeros(theta.size)
                     continue
                 values[key] = float(r.values[0, j, io])
                 grads[key] = r.jac[0, j, io]
@@ -171,7 +158,6 @@ class ClaimsObjective:
 
     # --- the log --------------------------------------------------------------------------
     def _record(self, theta, values, qs) -> None:
-        self.n_evals += len(values)
         self.records["theta"].extend(theta.tolist())
         self.records["loss"].extend(values.tolist())
         self.records["t"].extend([time.time() - self._t0] * len(values))
@@ -198,15 +184,3 @@ class ClaimsObjective:
             self.records = {k: z[k].tolist() for k in ("theta", "loss", "t", "stage")}
             self.quantities = {k[2:]: z[k].tolist() for k in z.files if k.startswith("q/")}
 
-
-def _derived(qs: dict, dampings) -> None:
-    """Fill the quantities computed from others (efficiency at the peak, the RR ratio)
-    after the peaks' P_out / P_in were replaced (in place)."""
-    for key in list(qs):
-        if key.startswith("Pin:"):
-            _, case, c = key.split(":")
-            qs[f"eta:{case}:{c}"] = qs[f"P:{case}:{c}"] / qs[key]
-    for c in dampings:
-        a, b = q("P", "DCDEA-RR-anti", c), q("P", "DCDEA-RR", c)
-        if a in qs and b in qs:
-            qs[q("R", "DCDEA-RR-anti", c)] = qs[a] / qs[b]

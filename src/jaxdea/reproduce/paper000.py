@@ -125,7 +125,7 @@ def calibrate_paper000(models: dict, plan: FitPlan = FitPlan(), *, log=None,
         init[1:1 + best.size] = seen[best]
     t0 = time.time()
     obj.stage = "de"
-    n0 = obj.n_evals
+    n0 = len(obj.records["loss"])
     if plan.generations > 0:
         de = DE(population=plan.population, generations=plan.generations, init=init)
         sol = de.minimise(obj, seed=plan.seed, verbose=verbose)
@@ -135,7 +135,7 @@ def calibrate_paper000(models: dict, plan: FitPlan = FitPlan(), *, log=None,
             raise ValueError("generations = 0 needs a log with DE evaluations to start from")
         i = int(np.nanargmin(obj.records["loss"]))
         de_theta, de_message, de_history = np.array(obj.records["theta"][i]), "from log", []
-    t_de, n_de = time.time() - t0, obj.n_evals - n0
+    t_de, n_de = time.time() - t0, len(obj.records["loss"]) - n0
     theta_all = np.array(obj.records["theta"])
     loss_all = np.array(obj.records["loss"])
     de_mask = np.array(obj.records["stage"]) == "de"
@@ -143,7 +143,7 @@ def calibrate_paper000(models: dict, plan: FitPlan = FitPlan(), *, log=None,
     starts = theta_all[de_mask][picks]
     obj.search, obj.stage = plan.search, "lbfgs"
     runs = []
-    t1, n1 = time.time(), obj.n_evals
+    t1, n1 = time.time(), len(obj.records["loss"])
     for s in starts:
         obj.params = [dataclasses.replace(p, init=float(v)) for p, v in zip(obj.params, s)]
         try:
@@ -153,7 +153,7 @@ def calibrate_paper000(models: dict, plan: FitPlan = FitPlan(), *, log=None,
                              history=r.progress.history))
         except Exception as exc:  # noqa: BLE001 - a failed start is reported, not fatal
             runs.append(dict(start=s, theta=s, message=f"failed: {exc}", history=[]))
-    t_lb, n_lb = time.time() - t1, obj.n_evals - n1
+    t_lb, n_lb = time.time() - t1, len(obj.records["loss"]) - n1
     # the final choice: every candidate checked with the same (100-cycle) peak search
     cands = np.stack([de_theta] + [r["theta"] for r in runs] + list(starts))
     obj.stage = "check"

@@ -21,10 +21,12 @@ import numpy as np
 from ..engine.batch import driven_membranes
 from ..engine.lanes import run_protocol
 from ..engine.protocols import EARLY_EXIT
+from ..engine.sensitivity import stack_designs
 from ..engine.sharding import cell_sharded
 from ..engine.step_control import StepControl
 from ..models.cone import Model
 from ..studies.builder import make_builder, resolve, split_names
+from ..studies.distributed import padded_cells
 
 __all__ = ["CASES", "Case", "PeakSearch", "case_builder", "peak_table"]
 
@@ -105,18 +107,14 @@ def _run(build, theta, search: PeakSearch, devices):
     builds (leading design axis) at ``theta`` (K, n)."""
     k = theta.shape[0]
     devices = tuple(devices)[:k]
-    kp = -(-k // len(devices)) * len(devices)
+    rows = padded_cells(0, -(-k // len(devices)) * len(devices), k)  # whole per device
 
-    def pad(a):
-        return jnp.concatenate([a, jnp.repeat(a[-1:], kp - k, axis=0)]) if kp > k else a
-
-    build = jax.tree_util.tree_map(lambda a: pad(jnp.asarray(a)) if eqx.is_array(a) else a,
-                                   build)
+    build = jax.tree_util.tree_map(lambda a: a[rows] if eqx.is_array(a) else a, build)
     _, ld0 = jax.tree_util.tree_map(lambda a: a[0] if eqx.is_array(a) else a,
                                     build)(jnp.asarray(theta[0]))
     n_cells = int(ld0.drive.frequency.shape[0])
     p, status, state = cell_sharded(_paper, devices)(
-        None, build, pad(jnp.asarray(theta)), cycles=search.cycles, average=search.average,
+        None, build, jnp.asarray(theta[rows]), cycles=search.cycles, average=search.average,
         settle=search.early_exit, control=search.control,
         lanes=int(min(n_cells, search.lanes)), driven=driven_membranes(ld0))
     p = np.moveaxis(np.asarray(p)[:k], 1, -1)
@@ -127,19 +125,18 @@ def _run(build, theta, search: PeakSearch, devices):
 
 def _stacked(model, names, case, mass, freq, damping):
     """Builds of ``case`` for every design (rows of ``freq`` / ``damping``), stacked."""
-    builds = [case_builder(model, names, case, mass, f, c) for f, c in zip(freq, damping)]
-    return jax.tree_util.tree_map(lambda *a: jnp.stack(a) if eqx.is_array(a[0]) else a[0],
-                                  *builds)
+    return stack_designs([case_builder(model, names, case, mass, f, c)
+                          for f, c in zip(freq, damping)])
 
 
 def _parabola(f, p):
     """Vertex of the parabola through the best of ``p`` (K, G) over ``f`` and its neighbours
     (the best cell itself at the grid's edge or where the fit is not concave)."""
-    k = p.shape[0]
+    rows = np.arange(p.shape[0])
     safe = np.where(np.isfinite(p), p, -np.inf)
-    i = np.clip(np.argmax(safe, axis=1), 1, p.shape[1] - 2)
-    rows = np.arange(k)
-    f0, f1, _f2 = f[rows, i - 1], f[rows, i], f[rows, i + 1]
+    best = np.argmax(safe, axis=1)
+    i = np.clip(best, 1, p.shape[1] - 2)
+    f0, f1 = f[rows, i - 1], f[rows, i]
     p0, p1, p2 = safe[rows, i - 1], safe[rows, i], safe[rows, i + 1]
     h = f1 - f0
     den = p0 - 2.0 * p1 + p2
@@ -147,7 +144,6 @@ def _parabola(f, p):
         x = 0.5 * (p0 - p2) / den
         ok = (den < 0) & np.isfinite(x) & (np.abs(x) <= 1.0)
         pv = p1 - 0.25 * (p0 - p2) * x
-    best = np.argmax(safe, axis=1)
     fb, pb = f[rows, best], safe[rows, best]
     edge = (best == 0) | (best == p.shape[1] - 1)
     use = ok & ~edge
@@ -174,8 +170,8 @@ def peak_table(models: dict[str, Model], names, theta, *, mass: float, dampings,
     **Returns:**
 
     ``{"P_max": {case: (K, n_c)}, "f": {case: (K, n_c)}, "P_in": {case: (K, n_c)} (at the
-    fine cell nearest the peak), "local": {(case, c): (P (K,), f (K,))}, "coarse":
-    {case: (f (G,), P_out (K, n_c, G))}, "state": {(case, c, "P" | "L"): the final state
+    fine cell nearest the peak), "local": {(case, c): (P (K,), f (K,))}, "state":
+    {(case, c, "P" | "L"): the final state
     (K, ...) of the fine cell nearest each peak}, "cells": cells run}``, W and Hz; NaN where
     no cell of a peak's grid reached status 0.
     """
@@ -185,8 +181,7 @@ def peak_table(models: dict[str, Model], names, theta, *, mass: float, dampings,
     cs = np.asarray(dampings, float)
     fc = search.coarse_grid()
     local = dict(local or {})
-    out = {"P_max": {}, "f": {}, "P_in": {}, "local": {}, "coarse": {}, "state": {},
-           "cells": 0}
+    out = {"P_max": {}, "f": {}, "P_in": {}, "local": {}, "state": {}, "cells": 0}
     offsets = search.fine * np.arange(-search.half, search.half + 1)
     for name in cases:
         case = CASES[name]
@@ -197,7 +192,6 @@ def peak_table(models: dict[str, Model], names, theta, *, mass: float, dampings,
         p, _, _ = _run(build, theta, search, devices)
         out["cells"] += p.shape[0] * p.shape[1]
         pc = p[..., 0].reshape(k, cs.size, fc.size)
-        out["coarse"][name] = (fc, pc)
         # fine grids: one per damping (global peak) and one per local sub-band
         centres, rows = [], []
         safe = np.where(np.isfinite(pc), pc, -np.inf)

@@ -19,7 +19,7 @@ from ..params import get_params
 from ..studies.powermap import powermap
 from ..studies.sweep import sweep
 from . import figures
-from .claims import CLAIMS, HEAVY, LIGHT, MASS, met, q, quantities_of
+from .claims import CLAIMS, HEAVY, LIGHT, MASS, derive, met, q, quantities_of
 from .objective import LOCAL
 from .paper000 import CONFIGS, FIT, load_models, margins
 from .peaks import CASES, PeakSearch, peak_table
@@ -58,7 +58,7 @@ def _theta(models: dict) -> np.ndarray:
     return np.array(list(get_params(models["dcdea_ls"], list(FIT)).values()), float)
 
 
-def _confirm(models: dict, qs: dict, size: Size) -> dict:
+def _confirm(models: dict, qs: dict, size: Size) -> tuple[dict, list[str]]:
     """Every peak of ``qs`` (design 0) run again at its frequency by the paper protocol:
     P, L, eta and R from those cells (the numbers of claims.csv), and the cells whose last
     cycles were not periodic (the paper protocol's number there is not a steady state)."""
@@ -81,10 +81,8 @@ def _confirm(models: dict, qs: dict, size: Size) -> dict:
                     unsteady.append(f"{case} c={c:g} f={f:g} Hz")
                 out[fk] = np.array([f])
                 if kind == "P":
-                    out[q("eta", case, c)] = np.array([float(ds["efficiency"].values[0])])
-    for c in (LIGHT, HEAVY):
-        out[q("R", "DCDEA-RR-anti", c)] = out[q("P", "DCDEA-RR-anti", c)] / \
-            out[q("P", "DCDEA-RR", c)]
+                    out[q("Pin", case, c)] = np.array([float(ds["P_in"].values[0])])
+    derive(out)
     return out, unsteady
 
 

@@ -150,7 +150,6 @@ def _model_settings(model: Model) -> dict[str, Any]:
 _run_chunk = run_chunk  # one chunk in this process (tests replace it)
 
 
-
 def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
     """P_max and f_at_P_max over f, among cells with status 0 that are steady (NaN where none
     is; a Dataset without ``steady``, e.g. an older store, counts every cell as steady)."""
