@@ -14,8 +14,11 @@ run, is the independent scipy transcription (tests/scipy_reference.py, LSODA rto
 every cell all 100 cycles) on cells sampled at stratum centres of the frequency axis (random
 payloads); it also checks the map's P_out and P_in there.
 
-    python bench/full_map_slice.py [--every 10] [--protocols paper,periodic] [--quick]
+    python bench/full_map_slice.py [--every 10] [--protocols paper,periodic,neighbour] [--quick]
         [--store DIR]   # keep the stores there (default: a temporary folder, removed)
+
+``neighbour`` is the periodic protocol with warm starts across the grid
+(``start="neighbour"``, :mod:`jaxdea.engine.warmstart`).
 
 Ends with one line: RESULT key=value ... (``full_map_<protocol>_s`` = slice wall time x
 ``every``).
@@ -38,19 +41,25 @@ sys.path.insert(0, str(ROOT / "tests"))
 import jaxdea  # noqa: E402
 import scipy_reference  # noqa: E402
 
+#: The slice's protocols: powermap keywords.
+PROTOCOLS = {"paper": dict(protocol="paper"), "periodic": dict(protocol="periodic"),
+             "neighbour": dict(protocol="periodic", start="neighbour")}
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--every", type=int, default=10, help="keep every Nth frequency (1: full)")
-    ap.add_argument("--protocols", default="paper,periodic",
-                    help="comma-separated: paper (100 cycles, early exit), periodic")
+    ap.add_argument("--protocols", default="paper,periodic,neighbour",
+                    help="comma-separated: paper (100 cycles, early exit), periodic (from "
+                         "rest), neighbour (periodic, warm starts across the grid)")
     ap.add_argument("--samples", type=int, default=8, help="LSODA cells")
     ap.add_argument("--quick", action="store_true", help="5 x 5 payloads (smoke)")
     ap.add_argument("--store", help="folder for the map stores (kept; default: temporary)")
     args = ap.parse_args()
     protocols = [p.strip() for p in args.protocols.split(",") if p.strip()]
-    if any(p not in ("paper", "periodic") for p in protocols) or not protocols:
-        sys.exit(f"--protocols must name paper and/or periodic, got {args.protocols!r}")
+    if any(p not in PROTOCOLS for p in protocols) or not protocols:
+        sys.exit(f"--protocols must name some of {', '.join(PROTOCOLS)}, got "
+                 f"{args.protocols!r}")
     if args.every < 1:
         sys.exit(f"--every must be >= 1, got {args.every}")
     n_dev = jaxdea.use_cpu_cores()
@@ -66,7 +75,7 @@ def main() -> None:
     maps, walls = {}, {}
     try:
         for protocol in protocols:
-            kw = dict(mass=mass, damping=damping, freq=freq, drive="A", protocol=protocol)
+            kw = dict(mass=mass, damping=damping, freq=freq, drive="A", **PROTOCOLS[protocol])
             # warm-up on a small grid (its chunk shape differs: the slice's compiles in the
             # timed run, a few seconds, as it would for a user)
             t0 = time.perf_counter()
@@ -92,13 +101,17 @@ def main() -> None:
             if reused:
                 out[f"{protocol}_chunks_reused"] = str(reused)
         out.update(lsoda_check(maps, walls, mass, damping, freq, args.samples))
-        if len(maps) == 2:
-            a, b = maps["paper"], maps["periodic"]
+        for pa, pb in (("paper", "periodic"), ("paper", "neighbour"), ("periodic", "neighbour")):
+            if pa not in maps or pb not in maps:
+                continue
+            a, b = maps[pa], maps[pb]
             both = ((a.status == 0) & a.steady & (b.status == 0) & b.steady).values
             diff = np.abs(b.P_out.values / a.P_out.values - 1)[both]
-            print(f"periodic vs paper P_out over {int(both.sum())} cells steady in both: max "
-                  f"rel diff {diff.max():.1e}, median {np.median(diff):.1e}")
-            out["periodic_vs_paper_max_rel"] = f"{diff.max():.2e}"
+            print(f"{pb} vs {pa} P_out over {int(both.sum())} cells steady in both: max "
+                  f"rel diff {diff.max():.1e}, median {np.median(diff):.1e}, above 1e-3: "
+                  f"{int((diff > 1e-3).sum())}")
+            out[f"{pb}_vs_{pa}_max_rel"] = f"{diff.max():.2e}"
+            out[f"{pb}_vs_{pa}_above_1e-3"] = str(int((diff > 1e-3).sum()))
     finally:
         if not args.store:
             shutil.rmtree(folder, ignore_errors=True)

@@ -185,3 +185,36 @@ def test_paper_early_exit_equals_the_full_run(model):
         np.testing.assert_allclose(a[2], b[2], rtol=1e-13, err_msg=k)
     with pytest.raises(jaxdea.SweepError, match="early_exit = 0 must be None"):
         jaxdea.sweep(model, mass=1e-3, damping=0.1, freq=FREQ, early_exit=0)
+
+
+def test_neighbour_warm_starts_equal_the_from_rest_map(model):
+    """``start="neighbour"`` (issue 16): each cell continued by chord iterations from its
+    neighbouring damping's orbit gives the from-rest periodic map's numbers (tolerance 1e-6
+    on the state: ~1e-4 on the powers) in fewer periods per cell, for every cell after the
+    chain's first stage (the heaviest damping, solved from rest); a cell below
+    ``REST_BELOW`` is solved from rest exactly as ``start="rest"`` solves it."""
+    from jaxdea.engine.warmstart import REST_BELOW
+
+    kw = dict(mass=[2e-3], damping=np.logspace(-1, 1, 5), freq=[REST_BELOW / 2, 60.0, 110.0, 160.0],
+              protocol="periodic", progress=False)
+    warm = jaxdea.powermap(model, start="neighbour", **kw)
+    cold = jaxdea.powermap(model, **kw)
+    assert warm.attrs["start"] == "neighbour" and cold.attrs["start"] == "rest"
+    assert (warm.status == 0).all() and (cold.status == 0).all()
+    for name in ("P_out", "P_in"):
+        err = float((abs(warm[name] - cold[name]) / cold[name]).max())
+        assert err < 2e-4, (name, err)
+    chained = dict(c=slice(0, -1), f=slice(1, None))  # not the head stage, not < REST_BELOW
+    fewer = warm.cycles_run.isel(chained) < cold.cycles_run.isel(chained)
+    assert fewer.mean() > 0.8, warm.cycles_run.values
+    low = dict(f=0)  # from rest in both: the same solve, the same numbers
+    np.testing.assert_allclose(warm.P_out.isel(low), cold.P_out.isel(low), rtol=1e-12)
+    # a protocol object says the same, and the setting is checked before any compute
+    assert jaxdea.Periodic(start="neighbour").start == "neighbour"
+    with pytest.raises(jaxdea.SweepError, match="needs protocol='periodic'"):
+        jaxdea.powermap(model, **{**kw, "protocol": "paper", "start": "neighbour"})
+    with pytest.raises(jaxdea.SweepError, match="start = 'up' must be one of rest, neighbour"):
+        jaxdea.Periodic(start="up")
+    with pytest.raises(jaxdea.SweepError, match="a sweep \\(one payload\\) has none"):
+        jaxdea.sweep(model, mass=2e-3, damping=0.1, freq=[60.0],
+                     protocol=jaxdea.Periodic(start="neighbour"))

@@ -98,6 +98,8 @@ def _powermap(args) -> int:
           + (f" x {phase.size} phase" if phase is not None else "")
           + f" = {n} cells, {args.cycles} cycles (average last {args.average}), "
           + (f"{args.direction} continuation, " if args.protocol == "continuation" else "")
+          + ("warm starts from the neighbouring payload, " if args.start == "neighbour"
+             else "")
           + (f"{len(jax.devices())} device(s)" if args.workers is None and args.scheduler is None
              else f"Dask cluster {args.scheduler or f'of {args.workers} local worker(s)'}"),
           flush=True)
@@ -152,7 +154,7 @@ def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client=N
                            drive=args.drive, protocol=args.protocol, cycles=args.cycles,
                            average=args.average, control=jaxdea.StepControl(rtol=args.rtol),
                            direction=args.direction, tol=args.tol, early_exit=args.early_exit,
-                           chunk_cells=args.chunk, store=out, resume=args.resume,
+                           start=args.start, chunk_cells=args.chunk, store=out, resume=args.resume,
                            progress=not args.no_progress, client=client)
 
 
@@ -255,6 +257,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--average", type=int, default=5, help="last periods averaged")
     m.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
     protocol_args(m)
+    m.add_argument("--start", default="rest", choices=["rest", "neighbour"],
+                   help="periodic: every cell from rest, or from its neighbouring payload's "
+                        "orbit along the second axis (heaviest load first; chord iterations; "
+                        "reports the continued branch where responses coexist)")
     m.add_argument("--chunk", type=int, help="cells per compiled call (default: equal chunks "
                    "of at most 4096 cells per device; on a Dask cluster ~4 chunks per worker, "
                    "256-4096 cells)")

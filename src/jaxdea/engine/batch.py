@@ -18,7 +18,14 @@ from .._checks import ConfigError, SweepError, check_choice, check_early_exit, c
 from ..models.cone import Loading, Model
 from .lanes import rest_states, run_protocol
 from .metrics import CycleMetrics
-from .protocols import DIRECTIONS, EARLY_EXIT, PROTOCOLS, Protocol, as_keywords
+from .protocols import (
+    DIRECTIONS,
+    EARLY_EXIT,
+    PROTOCOLS,
+    Protocol,
+    as_keywords,
+    check_rest_start,
+)
 from .sharding import cell_sharded
 from .step_control import StepControl
 
@@ -92,6 +99,7 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     (:func:`jaxdea.engine.protocols.as_protocol`). A :class:`jaxdea.Continuation`'s chains
     are ``successor``, not its ``direction``.
     """
+    check_rest_start(protocol, "run_cells (a flat batch of cells)")
     protocol, (cycles, average, early_exit, tol) = as_keywords(
         protocol, cycles=cycles, average=average, early_exit=early_exit, tol=tol)
     check_protocol(cycles, average)

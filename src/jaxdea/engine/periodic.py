@@ -39,7 +39,7 @@ from .sharding import cell_sharded, to_host
 from .step_control import StepControl
 
 #: The per-cell metrics of :class:`CycleMetrics` (everything but the final state).
-_PER_CELL = tuple(f.name for f in dataclasses.fields(CycleMetrics) if f.name != "final_state")
+PER_CELL = tuple(f.name for f in dataclasses.fields(CycleMetrics) if f.name != "final_state")
 
 
 def flatten_dynamical(y: ConeState) -> jax.Array:
@@ -60,12 +60,14 @@ def with_dynamical(y: ConeState, flat: jax.Array) -> ConeState:
     return eqx.tree_at(lambda s: tuple(getattr(s, k) for k in DYNAMICAL), y, tuple(out))
 
 
-def _settle(actuator, loadings, *, warmup, tol, control, lanes, driven):
+def _settle(actuator, loadings, initial=None, active=None, *, warmup, tol, control, lanes,
+            driven):
     return run_protocol(actuator, loadings, cycles=warmup, average=1, settle=tol,
-                        control=control, lanes=lanes, driven=driven)
+                        control=control, lanes=lanes, driven=driven, initial=initial,
+                        active=active)
 
 
-def _shoot(actuator, loadings, y, active, *, control, lanes, driven):
+def shoot_period(actuator, loadings, y, active, *, control, lanes, driven):
     """One period from ``y`` for the ``active`` cells: its metrics, the Jacobian ``J`` of the
     one-period map and the gap ``Phi_T(y) - y`` of each cell (the Newton step is solved on the
     host, :func:`newton_step`)."""
@@ -165,7 +167,9 @@ SHOOTING_LANES = 16
 def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e-6,
                    warmup: int = 12, newton: int = 6, control: StepControl = StepControl(),
                    lanes: int | None = None, devices: tuple | None = None,
-                   driven: tuple[int, ...] | None = None) -> CycleMetrics:
+                   driven: tuple[int, ...] | None = None,
+                   initial: ConeState | None = None, active: np.ndarray | None = None,
+                   with_jacobian: bool = False):
     """Periodic steady state of every cell of ``loadings`` (leading axis = cells).
 
     ``tol``: convergence tolerance on the scaled state (:func:`periodicity_residual`; 1e-6
@@ -176,7 +180,12 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     ``lanes``: lane pool of the settling stage (per device; default 32); shooting uses at
     most :data:`SHOOTING_LANES`. ``devices``: split the cells over these JAX devices (their
     number must divide the cell count); default: one device. ``driven``: the driven
-    membranes (:func:`jaxdea.protocol.run_protocol`; default all).
+    membranes (:func:`jaxdea.protocol.run_protocol`; default all). ``initial``: start state
+    of every cell for the settling stage (leading axis = cells; default: rest). ``active``:
+    bool per cell, solve only these (the others are skipped at no cost; their metrics are
+    meaningless). ``with_jacobian``: also return the one-period map's Jacobian ``(n, d, d)``
+    at each cell's last Newton iterate (NaN for a cell that settled without shooting), for
+    :func:`jaxdea.engine.warmstart.chord_cells`.
     """
     for name, v, lo in (("warmup", warmup, 2), ("newton", newton, 0)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
@@ -185,18 +194,23 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
         raise ValueError(f"tol = {tol!r} is outside the allowed range (0, 1)")
     devices = tuple(devices or jax.devices()[:1])
     settle = cell_sharded(_settle, devices) if len(devices) > 1 else _SETTLE
-    shoot = cell_sharded(_shoot, devices) if len(devices) > 1 else _SHOOT
+    shoot = cell_sharded(shoot_period, devices) if len(devices) > 1 else _SHOOT
     driven = None if driven is None else tuple(int(j) for j in driven)
     # Every stage's results come to the host (to_host) before the Newton bookkeeping below
     # mixes them with the host masks: on the devices, a sharded array combined with a
     # replicated one may compile to a collective, which XLA aborts on when one device is
     # 40 s late. Cells are independent; nothing here needs one.
-    res = to_host(settle(actuator, loadings, warmup=int(warmup), tol=float(tol),
-                         control=control, lanes=lanes, driven=driven))
-    out = {k: np.asarray(getattr(res, k)) for k in _PER_CELL}
+    active = None if active is None else np.asarray(active, bool)
+    res = to_host(settle(actuator, loadings, initial, active, warmup=int(warmup),
+                         tol=float(tol), control=control, lanes=lanes, driven=driven))
+    out = {k: np.asarray(getattr(res, k)) for k in PER_CELL}
     final = res.final_state
     y = res.final_state
     pending = out["status"] == 4
+    if active is not None:
+        pending &= active
+    d = flatten_dynamical(y).shape[-1]
+    jacobian = np.full(pending.shape + (d, d), np.nan)
     stepped = np.zeros_like(pending)
     for _ in range(int(newton)):
         if not pending.any():
@@ -204,6 +218,7 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
         r, jac, gap = to_host(shoot(actuator, loadings, y, pending, control=control,
                                     lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
                                     driven=driven))
+        jacobian = np.where(pending[:, None, None], np.asarray(jac), jacobian)
         step = newton_step(np.asarray(jac), np.asarray(gap), pending)
         size = np.asarray(step_residual(y, step))
         rs = {k: np.asarray(getattr(r, k)) for k in out}
@@ -227,8 +242,9 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
         stepped |= pending
         y = to_host(with_dynamical(y, flatten_dynamical(y) + np.where(pending[:, None], step,
                                                                       0.0)))
-    return CycleMetrics(final_state=jax.tree_util.tree_map(jnp.asarray, final),
-                        **{k: jnp.asarray(v) for k, v in out.items()})
+    metrics = CycleMetrics(final_state=jax.tree_util.tree_map(jnp.asarray, final),
+                           **{k: jnp.asarray(v) for k, v in out.items()})
+    return (metrics, jacobian) if with_jacobian else metrics
 
 
 @eqx.filter_jit
@@ -240,4 +256,4 @@ def step_residual(y: ConeState, step: jax.Array) -> jax.Array:
 
 
 _SETTLE = eqx.filter_jit(_settle)
-_SHOOT = eqx.filter_jit(_shoot)
+_SHOOT = eqx.filter_jit(shoot_period)

@@ -26,6 +26,9 @@ from .._checks import (
 #: from the previous f's final state); periodic steady state (settle, then Newton shooting).
 PROTOCOLS = ("paper", "continuation", "periodic")
 DIRECTIONS = ("forward", "backward")
+#: Where a map's periodic cells start: each from rest, or from the neighbouring payload's
+#: orbit along the map's second axis (:mod:`jaxdea.engine.warmstart`).
+STARTS = ("rest", "neighbour")
 
 #: Early exit of the paper and continuation protocols: a cell stops once its trajectory is
 #: periodic to this scaled residual (corrected for the observed contraction per cycle), since
@@ -37,7 +40,7 @@ EARLY_EXIT = 1e-8
 
 #: The protocol keywords of the studies and their defaults (the settings of a string protocol).
 KEYWORD_DEFAULTS = dict(cycles=100, average=5, early_exit=EARLY_EXIT, direction="forward",
-                        tol=1e-6)
+                        tol=1e-6, start="rest")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,13 +103,20 @@ class Periodic:
     **Arguments:**
 
     - `tol`: convergence tolerance on the scaled periodicity residual, in (0, 1).
+    - `start`: ``"rest"`` (every cell from rest) or, on a power map, ``"neighbour"``: each
+      cell starts from the converged orbit of its neighbour along the map's second axis
+      (c, or the payload law's axis), from the heaviest load down, and is solved by chord
+      iterations (:mod:`jaxdea.engine.warmstart`). Where responses coexist it reports the
+      branch continued from the heavier loads, which may differ from the from-rest orbit.
     """
 
     name: ClassVar[str] = "periodic"
     tol: float = 1e-6
+    start: str = "rest"
 
     def __post_init__(self):
         check_unit_interval("tol", self.tol)
+        check_choice("start", self.start, STARTS)
 
 
 #: Protocol objects by name.
@@ -167,6 +177,15 @@ def as_protocol(protocol: str | Protocol, **keywords) -> Protocol:
     cls = PROTOCOL_TYPES[check_choice("protocol", protocol, PROTOCOLS)]
     names = {f.name for f in dataclasses.fields(cls)}
     return cls(**{k: v for k, v in keywords.items() if k in names})
+
+
+def check_rest_start(protocol: str | Protocol, where: str) -> None:
+    """Raise :class:`jaxdea.SweepError` when ``protocol`` is a :class:`Periodic` object with
+    ``start="neighbour"`` given to ``where``, a study that is not a power map (it has no
+    neighbouring payloads to start from)."""
+    if getattr(protocol, "start", "rest") != "rest":
+        raise SweepError(f"start = {protocol.start!r} warm-starts the cells of a power map from "
+                         f"their neighbouring payloads; {where} has none: use start='rest'")
 
 
 def as_keywords(protocol: str | Protocol, **keywords) -> tuple[Any, tuple]:

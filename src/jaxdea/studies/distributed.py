@@ -38,6 +38,7 @@ from ..engine.batch import (
     run_from_rest,
 )
 from ..engine.sharding import cell_sharded, use_cpu_cores
+from ..engine.warmstart import neighbour_chain
 from ..models.cone import Loading, Model
 from .loadings import Grid
 from .mapstore import Parts
@@ -60,9 +61,19 @@ def padded_cells(lo: int, size: int, n: int) -> np.ndarray:
 
 
 def run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, successor, cycles,
-              average, control, tol, early_exit) -> dict[str, np.ndarray]:
+              average, control, tol, early_exit, chain=None, real=None) -> dict[str, np.ndarray]:
     """One chunk's results; ``successor`` (continuation) is the pattern of one device's
-    slice."""
+    slice; ``chain`` (periodic, ``start="neighbour"``): ``(n_chain, rest)`` of the chunk's
+    whole masses, of which the first ``real`` cells are the map's (the rest is padding)."""
+    if chain is not None:  # warm starts along the map's second axis, whole masses per chunk
+        n_chain, rest = chain
+        blocks = -(-int(real) // (n_chain * rest))
+        cells = np.arange(blocks * n_chain * rest)
+        res = neighbour_chain(model.actuator, jax.tree_util.tree_map(lambda a: a[cells], loadings),
+                              (blocks, n_chain, rest), tol=tol, control=control,
+                              devices=devices, driven=driven_membranes(loadings))
+        pad = np.minimum(np.arange(loadings.drive.frequency.shape[0]), cells.size - 1)
+        return {k: np.asarray(getattr(res, k))[pad] for k in VARIABLES}
     if protocol == "continuation" and len(devices) > 1:  # whole chains per device slice
         res = cell_sharded(run_from_rest, devices)(
             model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
@@ -110,7 +121,8 @@ def compute_part(job: ChunkJob, i: int) -> dict[str, Any]:
     t0 = time.perf_counter()
     lo, hi = job.cells(i)
     idx = padded_cells(lo, job.chunk, hi)
-    out = run_chunk(job.model, job.grid.loadings(idx), tuple(jax.devices())[:1], **job.run)
+    out = run_chunk(job.model, job.grid.loadings(idx), tuple(jax.devices())[:1], real=hi - lo,
+                    **job.run)
     got = {k: v[: hi - lo] for k, v in out.items()}
     receipt: dict[str, Any] = {"chunk": i, "cells": (lo, hi), "pid": os.getpid()}
     if job.parts is not None:

@@ -13,7 +13,7 @@ import xarray as xr
 from .._checks import SweepError, check_choice, check_early_exit, check_unit_interval, finite_array
 from ..engine.batch import DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors, run_cells
 from ..engine.metrics import STATUS, STEADY_RESIDUAL, CycleMetrics, steady_cells
-from ..engine.protocols import Protocol, as_keywords
+from ..engine.protocols import Protocol, as_keywords, check_rest_start
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
 from ..payloads import PARAMETER_UNITS
@@ -76,6 +76,7 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
     ``tol`` must stay at their defaults (:class:`SweepError` naming the one that does not).
     The result equals the string form's with the same settings, attrs included.
     """
+    check_rest_start(protocol, "a sweep (one payload)")
     protocol, (cycles, average, early_exit, direction, tol) = as_keywords(
         protocol, cycles=cycles, average=average, early_exit=early_exit, direction=direction,
         tol=tol)

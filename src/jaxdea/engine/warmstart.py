@@ -1,0 +1,272 @@
+"""Warm starts across a map's grid: each cell's periodic orbit continued from its neighbour's.
+
+The ``periodic`` protocol from rest settles every cell for up to ``warmup`` cycles and then
+shoots with the full one-period Jacobian (``jacfwd`` over the d dynamical states: one shot
+costs about ten periods). On a map, neighbouring payloads have nearby orbits *and* nearby
+Jacobians, so :func:`neighbour_chain` solves the grid one payload-axis stage at a time:
+
+1. the first stage (the heaviest load: its orbits are unique and settle fastest) is solved
+   from rest by :func:`jaxdea.engine.periodic.periodic_cells`, which also hands back each
+   cell's Jacobian;
+2. every later stage starts from its neighbour's orbit and Jacobian and runs chord
+   iterations (:func:`chord_cells`): ``y <- y - (J - I)^-1 (Phi_T(y) - y)`` with ``J`` kept
+   current by Broyden's rank-one update from each iteration's secant, so that each
+   iteration costs one plain period instead of a shot;
+3. a cell that has not converged after :data:`CHORD_ITERATIONS` iterations, whose period
+   fails, or whose orbit is not stable (:data:`~jaxdea.engine.periodic.STABLE_MULTIPLIER`,
+   checked with a true Jacobian wherever the updated one puts the Floquet radius above
+   :data:`VERIFY_RADIUS`) is solved from rest instead, exactly as ``start="rest"`` would.
+
+What is reported is the orbit continued along the chain: where responses coexist (near a
+jump, lightly damped), it is the branch connected to the heavier loads, which may differ from
+the orbit a run from rest falls onto. ``start="rest"`` (the default) keeps the from-rest
+orbit of every cell. Measured: ``bench/full_map_slice.py`` and ``docs/models.md`` section 4.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..models.cone import ConeActuator, ConeState, Loading
+from .batch import default_lanes, schedule
+from .lanes import run_protocol
+from .metrics import CycleMetrics
+from .periodic import (
+    PER_CELL,
+    SHOOTING_LANES,
+    STABLE_MULTIPLIER,
+    flatten_dynamical,
+    floquet_radius,
+    newton_step,
+    periodic_cells,
+    shoot_period,
+    step_residual,
+    with_dynamical,
+)
+from .sharding import cell_sharded, to_host
+from .step_control import StepControl
+
+#: Where a map's periodic cells start: from rest (each cell alone), or from the neighbouring
+#: payload's orbit along the map's second axis (c, or the payload law's axis).
+STARTS = ("rest", "neighbour")
+#: Chord iterations (one period each) before a warm-started cell is solved from rest. On the
+#: DCDEA-LS bench grid (2 masses x 50 dampings x 100 frequencies) a warm-started cell took
+#: 5.2 periods on average; 2 % needed more than 8.
+CHORD_ITERATIONS = 8
+#: Cells below this frequency (Hz) are solved from rest, in batches after the chain: they
+#: settle within about 4 periods from rest anyway, and a period is so long (a 1 Hz DCDEA-LS
+#: period takes ~4300 steps, a 100 Hz one ~150) that one such cell in a chord call keeps all
+#: the other lanes of the call waiting. Measured on 4 masses x 50 dampings x 996
+#: frequencies: the chord calls took 40 s instead of 52 s, the from-rest batches 23 s
+#: instead of 12 s; about even on that grid, and the chord calls' length no longer depends
+#: on the lowest frequency of the map.
+REST_BELOW = 10.0
+#: Floquet radius of the Broyden-updated Jacobian above which a chord-converged orbit's
+#: stability is checked with a true Jacobian (one shot).
+VERIFY_RADIUS = 0.98
+
+
+def _one_period(actuator, loadings, initial, active, *, control, lanes, driven):
+    return run_protocol(actuator, loadings, cycles=1, average=1, initial=initial,
+                        active=active, control=control, pools=(lanes,), driven=driven)
+
+
+def _take(tree, idx):
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], tree)
+
+
+def _select(mask, a, b):
+    """Per cell: ``a`` where ``mask`` else ``b`` (host arrays, any trailing shape)."""
+    return jax.tree_util.tree_map(
+        lambda x, y: np.where(mask.reshape(mask.shape + (1,) * (np.ndim(x) - 1)), x, y), a, b)
+
+
+def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
+                jacobian: np.ndarray, *, tol: float = 1e-6,
+                iterations: int = CHORD_ITERATIONS, control: StepControl = StepControl(),
+                lanes: int = 128, devices: tuple = (), driven=None):
+    """Periodic orbits by chord iterations with Broyden-updated Jacobians, from given states.
+
+    **Arguments:**
+
+    - `actuator`, `loadings`: the cells (leading axis), their number divisible by the number
+      of `devices`.
+    - `initial`: start state of every cell (a neighbour's orbit).
+    - `jacobian`: ``(n, d, d)`` one-period Jacobians to start from (a neighbour's); a cell
+      whose Jacobian is not finite gets a true one by one shot first.
+    - `tol`: the Newton step size (scaled, :func:`~jaxdea.engine.periodic.step_residual`)
+      below which a cell has converged, as in ``periodic_cells``.
+    - `iterations`: most chord iterations.
+    - `control`, `lanes`, `devices`, `driven`: as for ``periodic_cells``.
+
+    **Returns:**
+
+    ``(metrics, jacobian, converged)``: :class:`CycleMetrics` of the last period from each
+    cell's final iterate, the updated Jacobians, and a bool per cell, true where the chord
+    iteration converged to a stable orbit (elsewhere the metrics are meaningless).
+    """
+    devices = tuple(devices or jax.devices()[:1])
+    one = cell_sharded(_one_period, devices)
+    shoot = cell_sharded(shoot_period, devices)
+    y = to_host(initial)
+    flat = np.asarray(flatten_dynamical(y))
+    n = flat.shape[0]
+    jac = np.array(jacobian, dtype=float)
+    fresh = ~np.isfinite(jac).all(axis=(1, 2))  # shot first: their Jacobians are exact
+    out, prev = None, None
+    pending = np.ones(n, bool)
+    converged = np.zeros(n, bool)
+    steps, cycles = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    for k in range(int(iterations)):
+        y = with_dynamical(y, jnp.asarray(flat))
+        r = to_host(one(actuator, loadings, y, pending & ~fresh if k == 0 else pending,
+                        control=control, lanes=lanes, driven=driven))
+        if k == 0 and fresh.any():
+            rs, js, _ = to_host(shoot(actuator, loadings, y, fresh, control=control,
+                                      lanes=min(lanes, SHOOTING_LANES), driven=driven))
+            r = _select(fresh, rs, r)
+            jac = np.where(fresh[:, None, None], np.asarray(js), jac)
+        gap = np.asarray(flatten_dynamical(r.final_state)) - flat
+        out = r if out is None else _select(pending, r, out)
+        steps += np.where(pending, np.asarray(r.steps), 0)
+        cycles += np.where(pending, np.asarray(r.cycles_run), 0)
+        if prev is not None:  # Broyden's update of J - I from the secant of this iteration
+            dx, dg = flat - prev[0], gap - prev[1]
+            miss = dg - np.einsum("nij,nj->ni", jac - np.eye(jac.shape[-1]), dx)
+            upd = miss[:, :, None] * dx[:, None, :] / np.maximum(
+                np.einsum("ni,ni->n", dx, dx), 1e-300)[:, None, None]
+            jac = np.where(pending[:, None, None], jac + upd, jac)
+        ok = np.asarray(r.status) == 0
+        step = newton_step(jac, gap, pending & ok)
+        size = np.asarray(step_residual(y, step))
+        newly = pending & ok & (size < tol)
+        converged |= newly
+        pending &= ok & ~newly & np.isfinite(step).all(axis=1)
+        prev = (flat, gap)
+        flat = flat + np.where(pending[:, None], step, 0.0)
+        if not pending.any():
+            break
+    # stability: the updated Jacobian's Floquet radius, checked by one shot where doubtful
+    doubt = converged & ~(floquet_radius(jac) <= VERIFY_RADIUS)
+    if doubt.any():
+        _, js, _ = to_host(shoot(actuator, loadings, with_dynamical(y, jnp.asarray(flat)),
+                                 doubt, control=control, lanes=min(lanes, SHOOTING_LANES),
+                                 driven=driven))
+        jac = np.where(doubt[:, None, None], np.asarray(js), jac)
+        converged &= ~(doubt & ~(floquet_radius(jac) <= STABLE_MULTIPLIER))
+    fields = {k: np.asarray(getattr(out, k)) for k in PER_CELL}
+    fields.update(steps=steps.astype(fields["steps"].dtype),
+                  cycles_run=cycles.astype(fields["cycles_run"].dtype),
+                  status=np.where(converged, 0, 4).astype(fields["status"].dtype))
+    metrics = CycleMetrics(final_state=out.final_state, **fields)
+    return metrics, jac, converged
+
+
+def predict(last: np.ndarray, before: np.ndarray) -> np.ndarray:
+    """The next stage's start (flat dynamical states, ``(n, d)``): the secant predictor
+    ``2 y_j - y_(j-1)`` from the orbits of the last two stages (a map's axes are log- or
+    evenly spaced, so equal steps in index are equal steps in the axis' own scale), or
+    ``y_j`` where the earlier one is missing (NaN: it failed, or the chain just began).
+    On the DCDEA-LS bench grid it cut the chord periods per cell from 5.0 to 4.3."""
+    guess = 2.0 * last - before
+    return np.where(np.isfinite(guess).all(axis=1, keepdims=True), guess, last)
+
+
+def _scatter(results, cells, res):
+    """Write the per-slot results ``res`` (host arrays) into ``results`` at ``cells``."""
+    jax.tree_util.tree_map(lambda dst, src: dst.__setitem__(cells, np.asarray(src)),
+                           results, res)
+
+
+def _blank(like, n: int):
+    """Zeroed host arrays for ``n`` cells shaped like the per-cell results ``like``."""
+    return jax.tree_util.tree_map(
+        lambda a: np.zeros((n,) + np.shape(a)[1:], np.asarray(a).dtype), like)
+
+
+def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int, int, int], *,
+                    tol: float = 1e-6, control: StepControl = StepControl(),
+                    devices: tuple | None = None, driven=None) -> CycleMetrics:
+    """Periodic steady state of a block of map cells, each warm-started from its neighbour.
+
+    **Arguments:**
+
+    - `actuator`: the cone model.
+    - `loadings`: cells in C order ``shape = (blocks, n_chain, rest)``: for a map chunk of
+      whole masses, ``(M, c, f x phase)``. The chain runs along the middle axis, from its
+      last index (the heaviest load) down; each stage holds ``blocks x rest`` cells.
+    - `tol`, `control`: as for :func:`~jaxdea.engine.periodic.periodic_cells`.
+    - `devices`: JAX devices to split each stage's cells over (dealt lowest frequency first,
+      :func:`~jaxdea.engine.batch.schedule`); default the first device.
+    - `driven`: the driven membranes (default all).
+
+    **Returns:**
+
+    :class:`CycleMetrics` per cell, in the cells' order (host arrays). ``cycles_run`` and
+    ``steps`` count the primal periods and steps a cell took (chord iterations, and its
+    solve from rest where it fell back).
+
+    A cell whose chord iteration fails is solved from rest after the chain, together with
+    the others of the block that failed (one batch keeps the lanes busy), and the chain goes
+    on past it from the last orbit that converged in its column.
+    """
+    devices = tuple(devices or jax.devices()[:1])
+    n_dev = len(devices)
+    blocks, n_chain, rest = (int(k) for k in shape)
+    n = blocks * n_chain * rest
+    idx = np.arange(n).reshape(blocks, n_chain, rest)
+    freq = np.asarray(loadings.drive.frequency)
+    chained = idx[:, 0, :].ravel()[freq[idx[:, 0, :].ravel()] >= REST_BELOW]  # stage 0's
+    rest_cells = np.setdiff1d(np.arange(n), (chained[:, None] + rest * np.arange(n_chain))
+                              .ravel())
+    columns = chained[:, None] + rest * np.arange(n_chain)  # (column, stage) -> cell
+    order = schedule(freq[chained], n_dev) if chained.size else np.zeros(0, int)
+    keep = np.unique(order, return_index=True)[1]  # one slot per cell (padding repeats one)
+    lanes = default_lanes(order.size // n_dev) if order.size else None
+    kw = dict(tol=float(tol), control=control, devices=devices, driven=driven)
+    results, seed, last, before, jac, failed = None, None, None, None, None, [rest_cells]
+    for j in range(n_chain - 1 if chained.size else -1, -1, -1):
+        cells = columns[:, j][order]
+        ld = _take(loadings, cells)
+        if last is None:
+            res, jac = periodic_cells(actuator, ld, lanes=lanes, with_jacobian=True, **kw)
+            res = to_host(res)
+            ok = np.asarray(res.status) == 0
+        else:
+            start = to_host(with_dynamical(seed, jnp.asarray(predict(last, before))))
+            res, new_jac, ok = chord_cells(actuator, ld, start, jac, lanes=lanes, **kw)
+            jac = np.where(ok[:, None, None], new_jac, jac)
+        if results is None:
+            results = _blank(res, n)
+        _scatter(results, cells[keep], _take(res, keep))
+        failed.append(cells[keep][~ok[keep]])
+        # the column's seeds: the last orbit that converged, and the one before it (for the
+        # predictor; NaN when they are not from consecutive stages)
+        flat = np.asarray(flatten_dynamical(res.final_state))
+        if last is None:
+            seed, last = res.final_state, np.where(ok[:, None], flat, np.nan)
+            before = np.full_like(last, np.nan)
+            jac = np.where(ok[:, None, None], jac, np.nan)
+        else:
+            before = np.where(ok[:, None], last, np.nan)
+            last = np.where(ok[:, None], flat, last)
+    failed = np.concatenate(failed)
+    # the stage's own shape (its programs are compiled already), or without a chain all cells
+    size = order.size or -(-n // n_dev) * n_dev
+    for lo in range(0, failed.size, size):  # solved from rest, as start="rest" would be
+        part = failed[lo:lo + size]
+        padded = np.concatenate([part, np.full(size - part.size, part[-1])])
+        sub = padded[schedule(freq[padded], n_dev)]
+        real = np.zeros(size, bool)  # the padding slots are skipped at no cost
+        real[np.unique(sub, return_index=True)[1]] = True
+        back = to_host(periodic_cells(actuator, _take(loadings, sub), active=real,
+                                      lanes=lanes or default_lanes(size // n_dev), **kw))
+        results = _blank(back, n) if results is None else results
+        spent = {k: np.asarray(getattr(results, k))[sub] for k in ("steps", "cycles_run")}
+        back = eqx.tree_at(lambda m: (m.steps, m.cycles_run), back, tuple(
+            np.asarray(getattr(back, k)) + v for k, v in spent.items()))
+        _scatter(results, sub[real], _take(back, real))
+    return results
