@@ -21,7 +21,9 @@ payloads); it also checks the map's P_out and P_in there.
 (``start="neighbour"``, :mod:`jaxdea.engine.warmstart`).
 
 Ends with one line: RESULT key=value ... (``full_map_<protocol>_s`` = slice wall time x
-``every``).
+``every``; ``<protocol>_diffrax_ratio`` = a plain vmapped ``diffrax.diffeqsolve``'s wall time
+per sampled cell, ``bench/diffrax_baseline.py``, over the protocol's wall time per cell of the
+slice).
 """
 
 from __future__ import annotations
@@ -37,7 +39,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "bench"))
 
+import diffrax_baseline  # noqa: E402
 import jaxdea  # noqa: E402
 import scipy_reference  # noqa: E402
 
@@ -101,6 +105,7 @@ def main() -> None:
             if reused:
                 out[f"{protocol}_chunks_reused"] = str(reused)
         out.update(lsoda_check(maps, walls, mass, damping, freq, args.samples))
+        out.update(diffrax_check(model, maps, walls, mass, damping, freq, args.samples))
         for pa, pb in (("paper", "periodic"), ("paper", "neighbour"), ("periodic", "neighbour")):
             if pa not in maps or pb not in maps:
                 continue
@@ -118,14 +123,42 @@ def main() -> None:
     print("RESULT " + " ".join(f"{k}={v}" for k, v in out.items()))
 
 
+def _sampled(mass, damping, freq, samples):
+    """The sampled cells' indices (M, c, f): stratum centres of f, random payloads (seed 0)."""
+    rng = np.random.default_rng(0)
+    idx_f = ((np.arange(samples) + 0.5) * freq.size / samples).astype(int)
+    return [(int(rng.integers(mass.size)), int(rng.integers(damping.size)), int(k))
+            for k in idx_f]
+
+
+def diffrax_check(model, maps, walls, mass, damping, freq, samples) -> dict[str, str]:
+    """What a JAX user writes without jaxdea (``bench/diffrax_baseline.py``: a plain vmap of
+    ``diffrax.diffeqsolve``, Tsit5, PID, the edges as ``jump_ts``, 100 cycles from rest, mean
+    of the last 5) on the sampled cells: its wall time per cell (second call, one device)
+    against each protocol's wall time per cell of the slice, and its error against the map."""
+    cells = _sampled(mass, damping, freq, samples)
+    i, j, k = (np.array(a) for a in zip(*cells))
+    m, c, f = mass[i], damping[j], freq[k]
+    dfx = diffrax_baseline.diffrax_cells(model, m, c, f, cycles=100, average=5)
+    per_cell = dfx["wall_s"] / len(cells)
+    print(f"diffrax (plain vmap, 1 device): {len(cells)} sampled cells in {dfx['wall_s']:.2f} s "
+          f"(second call; compile {dfx['compile_s']:.1f} s), {per_cell * 1e3:.1f} ms per cell; "
+          f"all ok: {bool(dfx['ok'].all())}", flush=True)
+    out = {"diffrax_s_per_cell": f"{per_cell:.4f}"}
+    for p, ds in maps.items():
+        mine = walls[p] / float(ds.P_out.size)
+        errs = [abs(float(ds.P_out.isel(M=i, c=j, f=k)) / dfx["P_out"][n] - 1)
+                for n, (i, j, k) in enumerate(cells)]
+        out[f"{p}_diffrax_ratio"] = f"{per_cell / mine:.0f}"
+        out[f"{p}_vs_diffrax_max_rel"] = f"{max(errs):.2e}"
+    return out
+
+
 def lsoda_check(maps, walls, mass, damping, freq, samples) -> dict[str, str]:
     """LSODA on sampled cells: its trajectories/s, the maps' errors there and the ratio of
     LSODA's time for the slice (one core) to each protocol's wall time."""
-    rng = np.random.default_rng(0)
-    idx_f = ((np.arange(samples) + 0.5) * freq.size / samples).astype(int)
     times, errs = [], {p: [] for p in maps}
-    for k in idx_f:
-        i, j = rng.integers(mass.size), rng.integers(damping.size)
+    for i, j, k in _sampled(mass, damping, freq, samples):
         t0 = time.perf_counter()
         ref = scipy_reference.reference_metrics("dcdea_ls", float(mass[i]), float(damping[j]),
                                                 float(freq[k]), cycles=100, average=5,
