@@ -159,13 +159,17 @@ def _dealt_run(run, loadings: Loading, n: int, devices: tuple):
     replicated index compiles to a gather with an all-reduce across the devices, which XLA
     aborts the process on when one device's thread is 40 s late. Cells are independent, so
     nothing here needs a collective. (Traced results, one device only, stay traced.)"""
-    take = lambda tree, idx: jax.tree_util.tree_map(lambda a: a[idx], tree)  # noqa: E731
     order = schedule(np.asarray(loadings.drive.frequency), len(devices))
     real = deal_slots(n, len(devices)) < n  # the slots that are not padding
     where = np.empty(n, dtype=np.int64)  # slot of each cell
     where[order[real]] = np.nonzero(real)[0]
-    res = jax.tree_util.tree_map(_on_host, run(take(loadings, order)))
-    return jax.tree_util.tree_map(jnp.asarray, take(res, where))
+    res = jax.tree_util.tree_map(_on_host, run(take_cells(loadings, order)))
+    return jax.tree_util.tree_map(jnp.asarray, take_cells(res, where))
+
+
+def take_cells(tree, idx):
+    """The cells ``idx`` (an index array into the leading axis) of every leaf of ``tree``."""
+    return jax.tree_util.tree_map(lambda a: a[idx], tree)
 
 
 def _on_host(a):

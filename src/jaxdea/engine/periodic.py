@@ -209,8 +209,10 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     pending = out["status"] == 4
     if active is not None:
         pending &= active
-    d = flatten_dynamical(y).shape[-1]
-    jacobian = np.full(pending.shape + (d, d), np.nan)
+    jacobian = None
+    if with_jacobian:
+        d = flatten_dynamical(y).shape[-1]
+        jacobian = np.full(pending.shape + (d, d), np.nan)
     stepped = np.zeros_like(pending)
     for _ in range(int(newton)):
         if not pending.any():
@@ -218,7 +220,8 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
         r, jac, gap = to_host(shoot(actuator, loadings, y, pending, control=control,
                                     lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
                                     driven=driven))
-        jacobian = np.where(pending[:, None, None], np.asarray(jac), jacobian)
+        if with_jacobian:
+            jacobian = np.where(pending[:, None, None], np.asarray(jac), jacobian)
         step = newton_step(np.asarray(jac), np.asarray(gap), pending)
         size = np.asarray(step_residual(y, step))
         rs = {k: np.asarray(getattr(r, k)) for k in out}

@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
-from .batch import default_lanes, schedule
-from .lanes import run_protocol
+from .batch import default_lanes, schedule, take_cells
+from .lanes import run_protocol, select_cells
 from .metrics import CycleMetrics
 from .periodic import (
     PER_CELL,
@@ -49,9 +49,6 @@ from .periodic import (
 from .sharding import cell_sharded, to_host
 from .step_control import StepControl
 
-#: Where a map's periodic cells start: from rest (each cell alone), or from the neighbouring
-#: payload's orbit along the map's second axis (c, or the payload law's axis).
-STARTS = ("rest", "neighbour")
 #: Chord iterations (one period each) before a warm-started cell is solved from rest. On the
 #: DCDEA-LS bench grid (2 masses x 50 dampings x 100 frequencies) a warm-started cell took
 #: 5.2 periods on average; 2 % needed more than 8.
@@ -72,16 +69,6 @@ VERIFY_RADIUS = 0.98
 def _one_period(actuator, loadings, initial, active, *, control, lanes, driven):
     return run_protocol(actuator, loadings, cycles=1, average=1, initial=initial,
                         active=active, control=control, pools=(lanes,), driven=driven)
-
-
-def _take(tree, idx):
-    return jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], tree)
-
-
-def _select(mask, a, b):
-    """Per cell: ``a`` where ``mask`` else ``b`` (host arrays, any trailing shape)."""
-    return jax.tree_util.tree_map(
-        lambda x, y: np.where(mask.reshape(mask.shape + (1,) * (np.ndim(x) - 1)), x, y), a, b)
 
 
 def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
@@ -127,10 +114,10 @@ def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
         if k == 0 and fresh.any():
             rs, js, _ = to_host(shoot(actuator, loadings, y, fresh, control=control,
                                       lanes=min(lanes, SHOOTING_LANES), driven=driven))
-            r = _select(fresh, rs, r)
+            r = to_host(select_cells(fresh, rs, r))
             jac = np.where(fresh[:, None, None], np.asarray(js), jac)
         gap = np.asarray(flatten_dynamical(r.final_state)) - flat
-        out = r if out is None else _select(pending, r, out)
+        out = r if out is None else to_host(select_cells(pending, r, out))
         steps += np.where(pending, np.asarray(r.steps), 0)
         cycles += np.where(pending, np.asarray(r.cycles_run), 0)
         if prev is not None:  # Broyden's update of J - I from the secant of this iteration
@@ -219,18 +206,19 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     n = blocks * n_chain * rest
     idx = np.arange(n).reshape(blocks, n_chain, rest)
     freq = np.asarray(loadings.drive.frequency)
-    chained = idx[:, 0, :].ravel()[freq[idx[:, 0, :].ravel()] >= REST_BELOW]  # stage 0's
-    rest_cells = np.setdiff1d(np.arange(n), (chained[:, None] + rest * np.arange(n_chain))
-                              .ravel())
+    first = idx[:, 0, :].ravel()
+    chained = first[freq[first] >= REST_BELOW]  # stage 0's cells at or above REST_BELOW
     columns = chained[:, None] + rest * np.arange(n_chain)  # (column, stage) -> cell
+    rest_cells = np.setdiff1d(np.arange(n), columns.ravel())
     order = schedule(freq[chained], n_dev) if chained.size else np.zeros(0, int)
     keep = np.unique(order, return_index=True)[1]  # one slot per cell (padding repeats one)
     lanes = default_lanes(order.size // n_dev) if order.size else None
     kw = dict(tol=float(tol), control=control, devices=devices, driven=driven)
     results, seed, last, before, jac, failed = None, None, None, None, None, [rest_cells]
+    recent = None  # per column: ``last`` converged in the stage just done
     for j in range(n_chain - 1 if chained.size else -1, -1, -1):
         cells = columns[:, j][order]
-        ld = _take(loadings, cells)
+        ld = take_cells(loadings, cells)
         if last is None:
             res, jac = periodic_cells(actuator, ld, lanes=lanes, with_jacobian=True, **kw)
             res = to_host(res)
@@ -241,7 +229,7 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
             jac = np.where(ok[:, None, None], new_jac, jac)
         if results is None:
             results = _blank(res, n)
-        _scatter(results, cells[keep], _take(res, keep))
+        _scatter(results, cells[keep], take_cells(res, keep))
         failed.append(cells[keep][~ok[keep]])
         # the column's seeds: the last orbit that converged, and the one before it (for the
         # predictor; NaN when they are not from consecutive stages)
@@ -251,8 +239,9 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
             before = np.full_like(last, np.nan)
             jac = np.where(ok[:, None, None], jac, np.nan)
         else:
-            before = np.where(ok[:, None], last, np.nan)
+            before = np.where((ok & recent)[:, None], last, np.nan)
             last = np.where(ok[:, None], flat, last)
+        recent = ok
     failed = np.concatenate(failed)
     # the stage's own shape (its programs are compiled already), or without a chain all cells
     size = order.size or -(-n // n_dev) * n_dev
@@ -262,11 +251,11 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
         sub = padded[schedule(freq[padded], n_dev)]
         real = np.zeros(size, bool)  # the padding slots are skipped at no cost
         real[np.unique(sub, return_index=True)[1]] = True
-        back = to_host(periodic_cells(actuator, _take(loadings, sub), active=real,
+        back = to_host(periodic_cells(actuator, take_cells(loadings, sub), active=real,
                                       lanes=lanes or default_lanes(size // n_dev), **kw))
         results = _blank(back, n) if results is None else results
         spent = {k: np.asarray(getattr(results, k))[sub] for k in ("steps", "cycles_run")}
         back = eqx.tree_at(lambda m: (m.steps, m.cycles_run), back, tuple(
             np.asarray(getattr(back, k)) + v for k, v in spent.items()))
-        _scatter(results, sub[real], _take(back, real))
+        _scatter(results, sub[real], take_cells(back, real))
     return results

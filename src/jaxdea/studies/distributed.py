@@ -36,6 +36,7 @@ from ..engine.batch import (
     driven_membranes,
     run_cells,
     run_from_rest,
+    take_cells,
 )
 from ..engine.sharding import cell_sharded, use_cpu_cores
 from ..engine.warmstart import neighbour_chain
@@ -69,7 +70,7 @@ def run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, succ
         n_chain, rest = chain
         blocks = -(-int(real) // (n_chain * rest))
         cells = np.arange(blocks * n_chain * rest)
-        res = neighbour_chain(model.actuator, jax.tree_util.tree_map(lambda a: a[cells], loadings),
+        res = neighbour_chain(model.actuator, take_cells(loadings, cells),
                               (blocks, n_chain, rest), tol=tol, control=control,
                               devices=devices, driven=driven_membranes(loadings))
         pad = np.minimum(np.arange(loadings.drive.frequency.shape[0]), cells.size - 1)
