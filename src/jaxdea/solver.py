@@ -87,7 +87,8 @@ def _unwrap(term):
 
 
 def _axpy(a, x, y):
-    return jtu.tree_map(lambda xi, yi: a * xi + yi, x, y)
+    # ``a`` (a step length, f64) in each leaf's own dtype: single-precision states stay single
+    return jtu.tree_map(lambda xi, yi: jnp.asarray(a, xi.dtype) * xi + yi, x, y)
 
 
 def _add(*trees):
@@ -139,7 +140,7 @@ class LawsonRK4(diffrax.AbstractSolver):
         # Embedded 3rd-order solution with the extra stage k5 = N(t1, y1):
         # b_hat = (1/6, 1/3, 1/3, 0, 1/6) => error = h/6 (k4 - k5).
         k5 = remainder(tb, z1)
-        y_error = jtu.tree_map(lambda a, b: (h / 6.0) * (a - b), k4, k5)
+        y_error = jtu.tree_map(lambda a, b: jnp.asarray(h / 6.0, a.dtype) * (a - b), k4, k5)
         dense_info = dict(y0=y0, y1=y1)
         return y1, y_error, dense_info, None, diffrax.RESULTS.successful
 

@@ -18,6 +18,7 @@ from .._checks import ConfigError, SweepError, check_choice, check_early_exit, c
 from ..models.cone import Loading, Model
 from .lanes import rest_states, run_protocol
 from .metrics import CycleMetrics
+from .precision import check_precision
 from .protocols import (
     DIRECTIONS,
     EARLY_EXIT,
@@ -27,7 +28,7 @@ from .protocols import (
     check_rest_start,
 )
 from .sharding import cell_sharded
-from .step_control import StepControl
+from .step_control import StepControl, check_control
 
 _run = eqx.filter_jit(run_protocol)
 
@@ -105,6 +106,8 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     check_protocol(cycles, average)
     check_early_exit(early_exit)
     early_exit = None if early_exit is None else float(early_exit)
+    check_control(control)
+    check_precision(control, protocol, early_exit)
     if not isinstance(model, Model):
         raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
     check_choice("protocol", protocol, PROTOCOLS)

@@ -65,6 +65,7 @@ from .metrics import (
     settled,
     window_metrics,
 )
+from .precision import narrow, narrow_states, widen_states
 from .step_control import IController, StepControl
 
 
@@ -225,10 +226,17 @@ def run_protocol(
         range(driven[0], driven[-1] + 1)) else np.asarray(driven, dtype=int))
     solver = LawsonRK4()
     controller = IController(rtol=control.rtol, dt_max=control.dt_max)
-    term = SemilinearTerm(model.vector_field, model.linearisation)
     if initial is None and loadings.payload.loads_at_rest:  # a weight or a preloaded spring
         initial = rest_states(model, loadings)
     y0 = model.initial_state()
+    precision = control.precision
+    if precision != "double":  # the rest states above are float64; the lanes narrow them
+        model = narrow(model, precision)
+        loadings = eqx.tree_at(lambda ld: ld.payload, loadings,
+                               narrow(loadings.payload, precision))
+        y0 = narrow_states(y0, precision)
+        initial = None if initial is None else narrow_states(initial, precision)
+    term = SemilinearTerm(model.vector_field, model.linearisation)
 
     succ = (jnp.full(n_cells, n_cells, jnp.int32) if successor is None
             else jnp.asarray(successor, jnp.int32))
@@ -353,14 +361,14 @@ def run_protocol(
         status=jnp.zeros(n_cells, jnp.int32), steps=jnp.zeros(n_cells, jnp.int32),
         residual=jnp.zeros(n_cells), cycles_run=jnp.zeros(n_cells, jnp.int32),
         final_state=jax.tree_util.tree_map(
-            lambda a: jnp.zeros((n_cells,) + a.shape, a.dtype), y0),
+            lambda a: jnp.zeros((n_cells,) + a.shape, jnp.float64), y0),
     )
 
     def harvest(out, lane: _Lane, finished: Array):
         """Write the finished lanes' results into the outputs (other lanes write nowhere)."""
         metrics = jax.vmap(lambda ln: window_metrics(ln, cycles, settle, require_settled))(
             lane)
-        metrics["final_state"] = lane.y
+        metrics["final_state"] = widen_states(lane.y)
         target = jnp.where(finished, lane.job, n_cells)  # index n_cells is dropped
         return jax.tree_util.tree_map(
             lambda o, m: o.at[target].set(m, mode="drop"), out, metrics)

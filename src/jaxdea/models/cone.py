@@ -249,7 +249,7 @@ class ConeActuator(eqx.Module):
 
     def vector_field(self, t, y: ConeState, args: Loading) -> ConeState:
         """Time derivative of the whole state (mechanics, charges, dashpots, energies)."""
-        phi = args.drive(t)
+        phi = args.drive(t).astype(y.charge.dtype)  # single-precision lanes stay single
         d = self.deflections(y.q)
         r = self.membrane.respond(d, y.charge, y.xi_m, y.xi_el, phi)
         acc = self.accelerations(y.q, y.v, r.force, args.payload)
@@ -272,7 +272,7 @@ class ConeActuator(eqx.Module):
         return ChargeLinearisation(
             template=y,
             kappa=self.membrane.charge_relaxation_rate(d),
-            phi=args.drive(t),
+            phi=args.drive(t).astype(y.charge.dtype),
             two_rs=2.0 * self.membrane.electrode_resistance,
         )
 
@@ -367,7 +367,7 @@ class ChargeLinearisation(Linearisation):
         return eqx.tree_at(lambda s: s.energy_in, out, -self.phi * self.kappa * z.charge)
 
     def flow(self, h, z):
-        decay, gain = exp_decay_weights(self.kappa, h)
+        decay, gain = exp_decay_weights(self.kappa, jnp.asarray(h, self.kappa.dtype))
         zq = decay * z.charge
         # Off-phase charge decays geometrically towards 0 and would crawl through the
         # subnormal range (Q^2 in the Maxwell stress goes subnormal below ~1e-150 C), where

@@ -48,6 +48,7 @@ from .._checks import (
 )
 from ..engine.batch import DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors
 from ..engine.metrics import STATUS
+from ..engine.precision import check_precision
 from ..engine.protocols import STARTS, Protocol, as_keywords
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
@@ -282,6 +283,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
     check_early_exit(early_exit)
     early_exit = None if early_exit is None or protocol == "periodic" else float(early_exit)
     check_control(control)
+    check_precision(control, protocol, early_exit)
     if chunk_cells is not None:
         check_int("chunk_cells", chunk_cells, 1)
     store = check_store_path(store) if store is not None else None

@@ -13,6 +13,7 @@ import xarray as xr
 from .._checks import SweepError, check_choice, check_early_exit, check_unit_interval, finite_array
 from ..engine.batch import DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors, run_cells
 from ..engine.metrics import STATUS, STEADY_RESIDUAL, CycleMetrics, steady_cells
+from ..engine.precision import check_precision
 from ..engine.protocols import Protocol, as_keywords, check_rest_start
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
@@ -85,6 +86,7 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
     check_unit_interval("tol", tol)
     check_early_exit(early_exit)
     check_control(control)
+    check_precision(control, protocol, early_exit)
     freq = finite_array("freq", freq, positive=True)
     if freq.ndim != 1:
         raise SweepError(f"freq must be 1-D, got shape {freq.shape}")

@@ -1,0 +1,40 @@
+"""Single-precision lanes (``StepControl(precision="single")``) against the float64 engine."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxdea
+from jaxdea.engine.precision import NARROWED
+
+LS = Path(__file__).resolve().parents[1] / "configs" / "dcdea_ls.toml"
+
+FREQ = np.array([2.0, 20.0, 60.0, 150.0])
+
+
+@pytest.fixture(scope="module")
+def pair():
+    model = jaxdea.load_config(LS)
+    kw = dict(mass=2e-3, damping=1.0, freq=FREQ, cycles=30, average=3, early_exit=None)
+    return (jaxdea.sweep(model, **kw),
+            jaxdea.sweep(model, control=jaxdea.StepControl(precision="single"), **kw))
+
+
+def test_single_precision_agrees_with_double(pair):
+    """Issue 16's target: P_out and P_in within 1e-3 of float64 (same steps, same tolerance)."""
+    double, single = pair
+    for name in ("P_out", "P_in", "amplitude"):
+        rel = np.abs(single[name].values / double[name].values - 1)
+        assert rel.max() < 2e-4, (name, rel)  # measured <= 2e-5; the issue asks <= 1e-3
+    assert (single.status.values == 0).all()
+    # the step-size control sees the same errors: the step counts agree to a few per cent
+    np.testing.assert_allclose(single.steps.values, double.steps.values, rtol=0.05)
+    # and the answer really is single: not bit-identical, and off by more than float64 noise
+    assert np.abs(single.P_out.values / double.P_out.values - 1).max() > 1e-9
+
+
+def test_single_precision_results_are_float64(pair):
+    _, single = pair
+    assert all(single[v].dtype == np.float64 for v in ("P_out", "P_in", "residual"))
+    assert set(NARROWED) == {"q", "v", "charge", "xi_m", "xi_el"}
