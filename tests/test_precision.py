@@ -24,12 +24,16 @@ def pair():
 def test_single_precision_agrees_with_double(pair):
     """Issue 16's target: P_out and P_in within 1e-3 of float64 (same steps, same tolerance)."""
     double, single = pair
-    for name in ("P_out", "P_in", "amplitude"):
+    # measured <= 2e-5, except P_in at 2 Hz (7.5e-4): single keeps the charge's fixed error
+    # weight there (engine.precision), double tightens it; the issue asks <= 1e-3
+    for name, bar in (("P_out", 2e-4), ("P_in", 1e-3), ("amplitude", 2e-4)):
         rel = np.abs(single[name].values / double[name].values - 1)
-        assert rel.max() < 2e-4, (name, rel)  # measured <= 2e-5; the issue asks <= 1e-3
+        assert rel.max() < bar, (name, rel)
     assert (single.status.values == 0).all()
-    # the step-size control sees the same errors: the step counts agree to a few per cent
-    np.testing.assert_allclose(single.steps.values, double.steps.values, rtol=0.05)
+    # with equal error weights (>= 30 Hz) the step-size control sees the same errors: the
+    # step counts agree to a few per cent
+    high = FREQ >= 30.0
+    np.testing.assert_allclose(single.steps.values[high], double.steps.values[high], rtol=0.05)
     # and the answer really is single: not bit-identical, and off by more than float64 noise
     assert np.abs(single.P_out.values / double.P_out.values - 1).max() > 1e-9
 

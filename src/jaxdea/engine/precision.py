@@ -4,8 +4,8 @@ Narrowed (``precision="single"``, :class:`~jaxdea.engine.step_control.StepContro
 dynamical states (:data:`~jaxdea.engine.metrics.DYNAMICAL`: disk positions and velocities,
 charges, dashpot stretches) and the parameters of the actuator and of the payload law, so
 the vector field, the RK stages and the step-error norm run on float32 vectors (twice the
-SIMD width; measured: a vmapped solver step of DCDEA-LS costs 247 ns per lane in float64,
-133 ns in float32).
+SIMD width; what that buys on a CPU is measured in ``bench/precision_bench.py`` and
+``bench/NOTES.md``).
 
 Kept in float64: time and step sizes (the stage times are nudged 1e-9 of a step inside the
 step so that a square-wave edge on a step boundary belongs to the right side; float32 would
@@ -14,6 +14,11 @@ the model uses it), and the energy integrals (payload work, ``v^2``, ``Phi i``):
 average is the difference of two integrals over 100 cycles, and float32 sums of ~1e4
 increments would lose the digits the average needs. The static equilibrium (the rest state)
 is solved in float64 and then narrowed.
+
+Single-precision lanes keep the charge's fixed error weight (1e-1) at every frequency: the
+per-cycle weight of double precision (``step_control.charge_weight``, down to 3e-3 at 1 Hz)
+asks for charges finer than float32 resolves. So below ~5 Hz their P_in without recovery is
+as far from LSODA as the fixed weight leaves it (up to 4e-3 at 1 Hz).
 """
 
 from __future__ import annotations

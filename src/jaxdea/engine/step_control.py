@@ -83,9 +83,27 @@ def check_control(control) -> None:
 #: 1e-2 -> max error 5e-5 with 1.26x the steps of 1e-1 -> 4e-5; weight 1 -> 2e-4 on P_in.)
 SCALES = dict(q=(1e-3, 1.0), v=(0.1, 1.0), charge=(1e-6, 1e-1), xi_m=(1.0, 1.0),
               xi_el=(1.0, 1.0))
+#: Below this drive frequency the charge's error weight shrinks in proportion to the frequency
+#: (:func:`charge_weight`), Hz. Why: P_in without recovery integrates the current's negative
+#: part, and in the slow phases of a low-frequency cycle (the membrane creeps after its
+#: ringing has died out) that current is ``kappa`` times the charge's tiny lag behind
+#: ``C Phi``; the step's charge error is of the same size, and it accumulates over the cycle's
+#: duration, ``1/f``, against one charge per cycle of input. Measured against LSODA (rtol
+#: 1e-8, DCDEA-LS, M 0.26 g, c 0.26 N s/m): P_in off by 3.8e-3 / 1.2e-3 / 1.1e-3 at 1 / 2 /
+#: 3 Hz with the fixed weight 1e-1 (P_in_signed and P_out right to 2e-6 and 2e-4); a
+#: per-cycle budget, weight 1e-1 x f / 30 Hz below 30 Hz, brings P_in within 2e-4 for 11-35 %
+#: more steps at 1-5 Hz and none above 30 Hz (docs/models.md, section 4).
+CHARGE_WEIGHT_FREQUENCY = 30.0
 
 
-def error_norm(err: ConeState, y0: ConeState, y1: ConeState, rtol) -> Array:
+def charge_weight(frequency: Array) -> Array:
+    """The charge's error weight for a cell driven at ``frequency`` (Hz): :data:`SCALES`'
+    weight, times ``f / CHARGE_WEIGHT_FREQUENCY`` below :data:`CHARGE_WEIGHT_FREQUENCY`."""
+    return SCALES["charge"][1] * jnp.minimum(1.0, frequency / CHARGE_WEIGHT_FREQUENCY)
+
+
+def error_norm(err: ConeState, y0: ConeState, y1: ConeState, rtol,
+               frequency: Array | None = None) -> Array:
     """Scaled RMS norm of the local error over the dynamical states (not the accumulators).
 
     **Arguments:**
@@ -93,6 +111,8 @@ def error_norm(err: ConeState, y0: ConeState, y1: ConeState, rtol) -> Array:
     - `err`: the solver's local error estimate of the step.
     - `y0`, `y1`: the states at the start and end of the step.
     - `rtol`: relative tolerance.
+    - `frequency`: the cell's drive frequency, Hz (the charge's weight is
+      :func:`charge_weight` of it; ``None``: :data:`SCALES`' weight).
 
     **Returns:**
 
@@ -101,6 +121,8 @@ def error_norm(err: ConeState, y0: ConeState, y1: ConeState, rtol) -> Array:
     """
     total, count = 0.0, 0
     for name, (scale, weight) in SCALES.items():
+        if name == "charge" and frequency is not None:
+            weight = charge_weight(frequency)
         e = getattr(err, name)
         ref = jnp.maximum(jnp.abs(getattr(y0, name)), jnp.abs(getattr(y1, name)))
         r = e / (rtol * weight * (scale + ref))
@@ -130,7 +152,8 @@ class IController(eqx.Module):
 
     def adapt_step_size(self, y0: ConeState, y1_candidate: ConeState, y_error: ConeState,
                         h: Array, h_prev: Array, clipped: Array,
-                        active: Array) -> tuple[Array, Array, Array]:
+                        active: Array, frequency: Array | None = None
+                        ) -> tuple[Array, Array, Array]:
         """Accept or reject one attempted step and propose the next step size.
 
         **Arguments:**
@@ -144,6 +167,8 @@ class IController(eqx.Module):
         - `clipped`: whether ``h`` was clipped to a node: an accepted clipped step does not
           shrink the next proposal below ``h_prev``.
         - `active`: whether the lane is running; an idle lane keeps ``h_prev``.
+        - `frequency`: the cell's drive frequency, Hz (the charge's error weight,
+          :func:`error_norm`).
 
         **Returns:**
 
@@ -151,7 +176,7 @@ class IController(eqx.Module):
         non-finite candidate fails this: its states enter the norm as NaN); ``h_next``: the
         next proposed step, at most ``dt_max``.
         """
-        norm = error_norm(y_error, y0, y1_candidate, self.rtol)
+        norm = error_norm(y_error, y0, y1_candidate, self.rtol, frequency)
         # a non-finite y1 fails this too: its states enter the norm (NaN), and an infinite
         # state gives a NaN vector field, hence a NaN error estimate (no separate finite
         # check: that was ~9 % of a lane-step)
