@@ -65,8 +65,8 @@ from .metrics import (
     settled,
     window_metrics,
 )
-from .precision import narrow, narrow_states, widen_states
-from .step_control import IController, StepControl
+from .precision import SINGLE_CHARGE_WEIGHT_MIN, narrow, narrow_states, widen_states
+from .step_control import IController, StepControl, charge_weight
 
 
 def cycle_nodes(loading: Loading) -> Array:
@@ -238,11 +238,11 @@ def run_protocol(
         initial = None if initial is None else narrow_states(initial, precision)
     term = SemilinearTerm(model.vector_field, model.linearisation)
 
-    def budget_frequency(lane: _Lane):
-        """The frequency that sets the charge's error weight (``step_control.charge_weight``),
-        or None for the fixed weight: float32 charges do not resolve the tighter low-frequency
-        weights (at 2 Hz a float32 cell took 1.6x the steps of float64, fighting rounding)."""
-        return lane.loading.drive.frequency if precision == "double" else None
+    def charge_error_weight(lane: _Lane):
+        """The charge's error weight of the lane's cell (``step_control.charge_weight``); in
+        single precision at least :data:`~jaxdea.engine.precision.SINGLE_CHARGE_WEIGHT_MIN`."""
+        w = charge_weight(lane.loading.drive.frequency)
+        return w if precision == "double" else jnp.maximum(w, SINGLE_CHARGE_WEIGHT_MIN)
 
     succ = (jnp.full(n_cells, n_cells, jnp.int32) if successor is None
             else jnp.asarray(successor, jnp.int32))
@@ -303,7 +303,7 @@ def run_protocol(
         y1, err, *_ = solver.step(term, t0, t0 + h, lane.y, lane.loading, None, False)
         active = ~lane.done
         accept, ok, h_next = controller.adapt_step_size(lane.y, y1, err, h, lane.h, clipped,
-                                                        active, budget_frequency(lane))
+                                                        active, charge_error_weight(lane))
 
         y = jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), y1, lane.y)
         u = jnp.where(accept, jnp.where(clipped, target, lane.u + h / period), lane.u)

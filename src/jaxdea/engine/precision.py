@@ -15,10 +15,12 @@ average is the difference of two integrals over 100 cycles, and float32 sums of 
 increments would lose the digits the average needs. The static equilibrium (the rest state)
 is solved in float64 and then narrowed.
 
-Single-precision lanes keep the charge's fixed error weight (1e-1) at every frequency: the
-per-cycle weight of double precision (``step_control.charge_weight``, down to 3e-3 at 1 Hz)
-asks for charges finer than float32 resolves. So below ~5 Hz their P_in without recovery is
-as far from LSODA as the fixed weight leaves it (up to 4e-3 at 1 Hz).
+Single-precision lanes stop the per-cycle charge weight (``step_control.charge_weight``,
+down to 3e-3 at 1 Hz in double precision) at :data:`SINGLE_CHARGE_WEIGHT_MIN`: a tighter
+weight asks for charges finer than float32 resolves (with the 2 Hz weight a float32 cell
+took 1.6x the steps of float64, fighting rounding). Below ~10 Hz their P_in without
+recovery is therefore further from LSODA than double's (measured in
+``bench/precision_bench.py``).
 """
 
 from __future__ import annotations
@@ -61,6 +63,10 @@ def narrow_states(y: ConeState, precision: str) -> ConeState:
 def widen_states(y: ConeState) -> ConeState:
     """``y`` with every leaf in float64 (results leave the engine in double precision)."""
     return jax.tree_util.tree_map(lambda a: a.astype(jnp.float64), y)
+
+
+#: Smallest charge error weight of single-precision lanes (the weight of 9 Hz cells).
+SINGLE_CHARGE_WEIGHT_MIN = 3e-2
 
 
 #: Smallest early exit of single-precision lanes: the periodicity residual of a float32 cycle

@@ -103,7 +103,7 @@ def charge_weight(frequency: Array) -> Array:
 
 
 def error_norm(err: ConeState, y0: ConeState, y1: ConeState, rtol,
-               frequency: Array | None = None) -> Array:
+               charge: Array | None = None) -> Array:
     """Scaled RMS norm of the local error over the dynamical states (not the accumulators).
 
     **Arguments:**
@@ -111,8 +111,8 @@ def error_norm(err: ConeState, y0: ConeState, y1: ConeState, rtol,
     - `err`: the solver's local error estimate of the step.
     - `y0`, `y1`: the states at the start and end of the step.
     - `rtol`: relative tolerance.
-    - `frequency`: the cell's drive frequency, Hz (the charge's weight is
-      :func:`charge_weight` of it; ``None``: :data:`SCALES`' weight).
+    - `charge`: the charge's error weight (e.g. :func:`charge_weight` of the cell's
+      frequency; ``None``: :data:`SCALES`' weight).
 
     **Returns:**
 
@@ -121,8 +121,8 @@ def error_norm(err: ConeState, y0: ConeState, y1: ConeState, rtol,
     """
     total, count = 0.0, 0
     for name, (scale, weight) in SCALES.items():
-        if name == "charge" and frequency is not None:
-            weight = charge_weight(frequency)
+        if name == "charge" and charge is not None:
+            weight = charge
         e = getattr(err, name)
         ref = jnp.maximum(jnp.abs(getattr(y0, name)), jnp.abs(getattr(y1, name)))
         r = e / (rtol * weight * (scale + ref))
@@ -152,7 +152,7 @@ class IController(eqx.Module):
 
     def adapt_step_size(self, y0: ConeState, y1_candidate: ConeState, y_error: ConeState,
                         h: Array, h_prev: Array, clipped: Array,
-                        active: Array, frequency: Array | None = None
+                        active: Array, charge: Array | None = None
                         ) -> tuple[Array, Array, Array]:
         """Accept or reject one attempted step and propose the next step size.
 
@@ -167,8 +167,7 @@ class IController(eqx.Module):
         - `clipped`: whether ``h`` was clipped to a node: an accepted clipped step does not
           shrink the next proposal below ``h_prev``.
         - `active`: whether the lane is running; an idle lane keeps ``h_prev``.
-        - `frequency`: the cell's drive frequency, Hz (the charge's error weight,
-          :func:`error_norm`).
+        - `charge`: the charge's error weight (:func:`error_norm`; default :data:`SCALES`').
 
         **Returns:**
 
@@ -176,7 +175,7 @@ class IController(eqx.Module):
         non-finite candidate fails this: its states enter the norm as NaN); ``h_next``: the
         next proposed step, at most ``dt_max``.
         """
-        norm = error_norm(y_error, y0, y1_candidate, self.rtol, frequency)
+        norm = error_norm(y_error, y0, y1_candidate, self.rtol, charge)
         # a non-finite y1 fails this too: its states enter the norm (NaN), and an infinite
         # state gives a NaN vector field, hence a NaN error estimate (no separate finite
         # check: that was ~9 % of a lane-step)
