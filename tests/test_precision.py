@@ -42,3 +42,19 @@ def test_single_precision_results_are_float64(pair):
     _, single = pair
     assert all(single[v].dtype == np.float64 for v in ("P_out", "P_in", "residual"))
     assert set(NARROWED) == {"q", "v", "charge", "xi_m", "xi_el"}
+
+
+def test_precision_is_recorded(pair, monkeypatch):
+    """A map's attrs (and so its store's settings, which a resume must match) say which
+    precision computed it: a float32 store is not resumed by a float64 run, nor mixed."""
+    from jaxdea.studies import powermap as pm
+    from jaxdea.studies.sweep import VARIABLES
+
+    double, single = pair
+    assert (double.attrs["precision"], single.attrs["precision"]) == ("double", "single")
+    monkeypatch.setattr(pm, "_run_chunk", lambda model, loadings, *a, **k: {
+        v: np.zeros(loadings.drive.frequency.shape[0]) for v in VARIABLES})
+    ds = jaxdea.powermap(jaxdea.load_config(LS), mass=[1e-3], damping=[1.0], freq=[60.0],
+                         control=jaxdea.StepControl(precision="single"), early_exit=None,
+                         progress=False)
+    assert ds.attrs["precision"] == "single"
