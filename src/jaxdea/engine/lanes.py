@@ -230,19 +230,18 @@ def run_protocol(
         initial = rest_states(model, loadings)
     y0 = model.initial_state()
     precision = control.precision
-    if precision != "double":  # the rest states above are float64; the lanes narrow them
-        model = narrow(model, precision)
-        loadings = eqx.tree_at(lambda ld: ld.payload, loadings,
-                               narrow(loadings.payload, precision))
-        y0 = narrow_states(y0, precision)
-        initial = None if initial is None else narrow_states(initial, precision)
+    if precision == "single":  # the rest states above are float64; the lanes narrow them
+        model = narrow(model)
+        loadings = eqx.tree_at(lambda ld: ld.payload, loadings, narrow(loadings.payload))
+        y0 = narrow_states(y0)
+        initial = None if initial is None else narrow_states(initial)
     term = SemilinearTerm(model.vector_field, model.linearisation)
 
     def charge_error_weight(lane: _Lane):
         """The charge's error weight of the lane's cell (``step_control.charge_weight``); in
         single precision at least :data:`~jaxdea.engine.precision.SINGLE_CHARGE_WEIGHT_MIN`."""
         w = charge_weight(lane.loading.drive.frequency)
-        return w if precision == "double" else jnp.maximum(w, SINGLE_CHARGE_WEIGHT_MIN)
+        return jnp.maximum(w, SINGLE_CHARGE_WEIGHT_MIN) if precision == "single" else w
 
     succ = (jnp.full(n_cells, n_cells, jnp.int32) if successor is None
             else jnp.asarray(successor, jnp.int32))
