@@ -47,6 +47,7 @@ CHECK = {"scdea_ls": DESIGN_STEADY, "dcdea_rr": Steady(), "dcdea_ls": DESIGN_STE
 #: efficiency <= 8.9e-6 (SCDEA-LS), 3.9e-7 (DCDEA-LS), 2.7e-7 (DCDEA-RR).
 TOL = {"P_out": 1e-4, "efficiency": 1e-4, "P_max": 1e-4}
 BAND = (20.0, 160.0)
+FREQS = 8
 
 
 @pytest.mark.parametrize("name,drive,phase", [("scdea_ls", "A", None),
@@ -62,7 +63,7 @@ def test_gradients_match_central_differences(models, name, drive, phase):
     keys, full, pay = split_names(resolve(model, names))
     build = make_builder(model, full, pay, mass=None if "mass" in names else 2e-3,
                          damping=None if "damping" in names else 0.1,
-                         freq=np.linspace(*BAND, 8), drive=drive, phase=phase, shift=True)
+                         freq=np.linspace(*BAND, FREQS), drive=drive, phase=phase, shift=True)
     base = dict(jaxdea.parameter_names(model))
     theta = np.array([{"mass": 2e-3, "damping": 0.1}.get(k) or base[r]
                       for k, r in zip(keys, full + pay)] + [0.0])  # + the frequency shift

@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import pytest
 
 ROOT = Path(__file__).parents[1]
@@ -40,8 +41,12 @@ def test_there_are_notebooks():
 def test_notebook_runs(path):
     nb = json.loads(path.read_text())
     assert any(c["cell_type"] == "markdown" for c in nb["cells"]), "explain the notebook"
+    # the suite's on-disk cache of compiled programs (conftest.py): a notebook's programs
+    # are compiled once per machine, not once per run
     env = dict(os.environ, JAXDEA_NOTEBOOK_SMALL="1", MPLBACKEND="Agg",
-               PYTHONPATH=str(ROOT / "src") + os.pathsep + os.environ.get("PYTHONPATH", ""))
+               PYTHONPATH=str(ROOT / "src") + os.pathsep + os.environ.get("PYTHONPATH", ""),
+               JAX_COMPILATION_CACHE_DIR=str(jax.config.jax_compilation_cache_dir),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1.0")
     env.pop("XLA_FLAGS", None)
     res = subprocess.run([sys.executable, "-c", RUNNER, str(path)], cwd=path.parent, env=env,
                          capture_output=True, text=True, timeout=900)
