@@ -220,7 +220,10 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
         cells = columns[:, j][order]
         ld = take_cells(loadings, cells)
         if last is None:
-            res, jac = periodic_cells(actuator, ld, lanes=lanes, with_jacobian=True, **kw)
+            # every cell active, as in the from-rest batches below: one compiled program
+            # for both (an absent mask is another program, ~7 s of compile per map)
+            res, jac = periodic_cells(actuator, ld, lanes=lanes, with_jacobian=True,
+                                      active=np.ones(cells.size, bool), **kw)
             res = to_host(res)
             ok = np.asarray(res.status) == 0
         else:
