@@ -25,7 +25,15 @@ frequency stratum), against jaxdea's engine on the same cells in the same run
 equal work), both second calls; both are checked against LSODA on the first cell of each
 stratum. ``diffrax_ratio`` = diffrax's wall time / jaxdea's (early exit on).
 
-    python bench/powermap_bench.py [--quick] [--periodic-only] [--no-diffrax]
+Full-map slice (issue 16): a real 1/10 slice of the paper-size map (all 50 x 50 payloads,
+every 10th frequency of the 0.2 Hz grid: 250 000 cells), timed for the paper protocol and for
+``periodic`` with warm starts across the grid, against LSODA and diffrax on sampled cells
+(bench/full_map_slice.py, whose fields join this RESULT line: ``full_map_paper_s``,
+``full_map_neighbour_s`` = slice wall time x 10, ``*_lsoda_ratio``, ``*_max_rel_err_vs_lsoda``,
+``*_diffrax_ratio``, and the XLA compile inside each timed run). About 10 minutes on 2 cores;
+``--no-slice`` skips it.
+
+    python bench/powermap_bench.py [--quick] [--periodic-only] [--no-diffrax] [--no-slice]
 
 Ends with one line: RESULT key=value ...
 """
@@ -44,6 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "bench"))
 
+import full_map_slice  # noqa: E402
 import jaxdea  # noqa: E402
 import scipy_reference  # noqa: E402
 
@@ -54,6 +63,8 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=8)
     ap.add_argument("--periodic-only", action="store_true", help="only the periodic section")
     ap.add_argument("--no-diffrax", action="store_true", help="skip the diffrax baseline")
+    ap.add_argument("--no-slice", action="store_true",
+                    help="skip the timed 1/10 slice of the full map (~10 min)")
     args = ap.parse_args()
     n_dev = jaxdea.use_cpu_cores()  # before any JAX work: one device per core
     periodic = periodic_section(args.quick)
@@ -116,12 +127,18 @@ def main() -> None:
           f"(LSODA one core: {2500 * 996 / lsoda_tps / 86400:.0f} days)")
     dfx = {} if args.no_diffrax else diffrax_section(model, mass, damping, freq, idx_f,
                                                      cycles, rng)
+    sliced = {}
+    if not args.no_slice:  # last: the longest section (--quick: 5 x 5 payloads, every 50th f)
+        sliced = full_map_slice.run_slice(["paper", "neighbour"], every=50 if args.quick else 10,
+                                          samples=args.samples, quick=args.quick)
+        own = {"lsoda_traj_per_s", "devices", "diffrax_s_per_cell"}
+        sliced = {f"slice_{k}" if k in own else k: v for k, v in sliced.items()}
     print(f"RESULT jaxdea_traj_per_s={jax_tps:.2f} lsoda_traj_per_s={lsoda_tps:.3f} "
           f"ratio={jax_tps / lsoda_tps:.1f} cells={n_cells} cycles={cycles} jaxdea_s={jax_s:.1f} "
           f"peak_rss_mib={rss_mb:.0f} projected_full_map_s={full_h * 3600:.0f} "
           f"max_rel_err={max(errs):.2e} devices={n_dev} "
           f"mean_cycles_run={ds.cycles_run.values.mean():.1f} "
-          + " ".join(f"{k}={v}" for k, v in {**dfx, **periodic}.items()))
+          + " ".join(f"{k}={v}" for k, v in {**dfx, **periodic, **sliced}.items()))
 
 
 def diffrax_section(model, mass, damping, freq, idx_f, cycles, rng) -> dict[str, str]:
