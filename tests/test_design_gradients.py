@@ -48,6 +48,12 @@ CHECK = {"scdea_ls": DESIGN_STEADY, "dcdea_rr": Steady(), "dcdea_ls": DESIGN_STE
 TOL = {"P_out": 1e-4, "efficiency": 1e-4, "P_max": 1e-4}
 BAND = (20.0, 160.0)
 FREQS = 8
+#: The P_max search's band per configuration: +-20 Hz around the peak of the centre design
+#: (86.4, 70.8 and 69.9 Hz). The envelope gradient is checked just the same; over BAND the
+#: search needed 4 levels and ~2x the time (DCDEA-RR: 123 s against 53 s on one core), the
+#: low frequencies at rtol 1e-9 being the costliest cells. Finding a peak over a wide band
+#: is test_design.py's (and the notebook's) job.
+PEAK_BAND = {"scdea_ls": (66.0, 106.0), "dcdea_rr": (50.0, 90.0), "dcdea_ls": (50.0, 90.0)}
 
 
 @pytest.mark.parametrize("name,drive,phase", [("scdea_ls", "A", None),
@@ -80,7 +86,8 @@ def test_gradients_match_central_differences(models, name, drive, phase):
         err = np.abs(fd - g) * np.abs(theta[:n, None]) / np.abs(r.values[0, :, i])
         print(name, metric, "max rel FD error", err.max())
         assert err.max() < TOL[metric], (metric, dict(zip(keys, err.max(axis=1))))
-    pk = peak_designs(build, designs, BAND, settings=CHECK[name])
+    pk = peak_designs(build, designs, PEAK_BAND[name], settings=CHECK[name])
+    assert PEAK_BAND[name][0] + 5.0 < pk["f"][0] < PEAK_BAND[name][1] - 5.0  # inside, not at an end
     assert (pk["status"] == 0).all()
     fd = (pk["P_max"][1:n + 1] - pk["P_max"][n + 1:]) / (2 * h)
     err = np.abs(fd - pk["grad"][0, :n]) * np.abs(theta[:n]) / pk["P_max"][0]
