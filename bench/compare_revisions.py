@@ -85,10 +85,10 @@ def main() -> None:
     shas = [git("rev-parse", "--short", r) for r in args.revs]
     with tempfile.TemporaryDirectory(prefix="jaxdea-revs-") as tmp:
         trees = {}
-        for sha in dict.fromkeys(shas):
-            trees[sha] = Path(tmp) / sha
-            git("worktree", "add", "--detach", str(trees[sha]), sha)
-        try:
+        try:  # every worktree added is removed again, even if a later one fails
+            for sha in dict.fromkeys(shas):
+                git("worktree", "add", "--detach", str(Path(tmp) / sha), sha)
+                trees[sha] = Path(tmp) / sha
             ns = {sha: [] for sha in trees}
             for r in range(args.rounds):
                 for sha, tree in trees.items():
