@@ -140,3 +140,28 @@ def test_payload_law_gradients(models):
     assert np.all(np.abs(fd[1:] * theta[1:, None]) > 1e-4 * np.abs(r.values[0, :, 0]))
     with pytest.raises(jaxdea.SweepError, match="has no parameter 'cubic'"):
         steady_objectives(model, {"payload.cubic": 1.0}, payload=law, freq=[75.0])
+
+
+def test_jacobian_by_columns_equals_jacfwd():
+    """The design shoot's Jacobian, one jvp per direction, is jacfwd's (with its aux), also
+    through a while_loop whose trip count depends on the primal, under a vmap."""
+    import jax.numpy as jnp
+
+    from jaxdea.engine.sensitivity import jacobian_by_columns
+
+    def f(z, a):
+        def body(c):
+            i, y = c
+            return i + 1, y + 0.1 * (1.5 + jnp.sin(a * y)) * y[::-1]
+        n, y = jax.lax.while_loop(lambda c: c[1].sum() < 6.0 + a, body, (0, 1.0 + z))
+        return (y, jnp.stack([y @ y, y[0] * a])), n
+
+    z0 = jnp.array([0.1, 0.2, -0.3])
+    for a in (0.5, 2.0):
+        (j1, k1), n1 = jacobian_by_columns(lambda z: f(z, a), z0)
+        (j2, k2), n2 = jax.jacfwd(lambda z: f(z, a), has_aux=True)(z0)
+        assert j1.shape == (3, 3) and k1.shape == (2, 3) and int(n1) == int(n2) > 1
+        assert np.allclose(j1, j2, rtol=1e-12, atol=0) and np.allclose(k1, k2, rtol=1e-12)
+    batched = jax.vmap(lambda a: jacobian_by_columns(lambda z: f(z, a), z0)[0][0])(
+        jnp.array([0.5, 2.0]))
+    assert np.allclose(batched[1], jax.jacfwd(lambda z: f(z, 2.0)[0][0])(z0), rtol=1e-12)

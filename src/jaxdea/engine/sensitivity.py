@@ -9,11 +9,12 @@ period from ``y*`` are differentiated implicitly:
 
     dy*/dtheta = (I - dPhi/dy)^-1 dPhi/dtheta,    dm/dtheta = dm/dtheta|_y + dm/dy dy*/dtheta,
 
-with ``dPhi/dy``, ``dPhi/dtheta``, ``dm/dy`` and ``dm/dtheta`` from one ``jax.jacfwd``
-through one period of the lane engine, tangents over the d dynamical states and the n
-parameters at once (cells are independent, so the same perturbation of every cell gives each
-cell its own Jacobian). The Newton pass that confirms convergence is that same pass: a
-converged cell costs one forward pass with ``d + n`` tangents on top of its primal solve.
+with ``dPhi/dy``, ``dPhi/dtheta``, ``dm/dy`` and ``dm/dtheta`` from forward-mode passes
+through one period of the lane engine, one per direction over the d dynamical states and the
+n parameters (:func:`jacobian_by_columns`; cells are independent, so
+the same perturbation of every cell gives each cell its own Jacobian). The Newton pass that
+confirms convergence is that same pass: a converged cell costs ``d + n`` forward passes of
+one period on top of its primal solve.
 Nothing differentiates through the settling or the Newton iterations: they run on the host.
 
 :func:`implicit` wraps a host-side solver ``theta -> (values, jacobians)`` into a
@@ -109,6 +110,40 @@ def _settle(build, theta, initial, *, warmup, tol, control, lanes, driven):
     return jax.vmap(one)(build, theta, initial)
 
 
+def jacobian_by_columns(f, z0: jax.Array):
+    """``jax.jacfwd(f, has_aux=True)(z0)`` computed as one ``jax.jvp`` per basis direction,
+    in sequence (``jax.lax.map``), instead of with the m tangents batched.
+
+    ``f`` runs the lane engine (a ``while_loop`` of adaptive steps). Under a ``vmap`` over
+    designs (:func:`_shoot`), XLA's CPU code for that loop with a batch of
+    tangents is far slower than the batch's size times one tangent: the design solve's shoot
+    (17 designs x 8 cells, m = 14) took 5.8 s with ``jacfwd``, 11.7 s with the tangents
+    mapped two at a time and 1.2 s one at a time, and compiled in 17 s against 32 s, with
+    the same Jacobian to 1e-13 relative. Without that ``vmap`` (a power map's shoot,
+    :func:`jaxdea.engine.periodic.shoot_period`, d = 5) ``jacfwd`` is the faster: 1.0-1.2 s
+    against 1.5-1.6 s on the periodic bench sweep (128 cells), though it compiles 5 s
+    longer; that shoot keeps it. The adaptive steps follow the primal only, so each pass
+    takes the same steps.
+
+    **Arguments:**
+
+    - `f`: ``z -> (out, aux)``, ``out`` a pytree of arrays.
+    - `z0`: ``(m,)`` point of the derivative.
+
+    **Returns:**
+
+    ``(jac, aux)``: ``jac`` as ``out`` with a trailing axis of size m (as ``jax.jacfwd``),
+    ``aux`` that of the first pass.
+    """
+    def column(e):
+        _, tangent, aux = jax.jvp(f, (z0,), (e,), has_aux=True)
+        return tangent, aux
+
+    cols, aux = jax.lax.map(column, jnp.eye(z0.shape[0], dtype=z0.dtype))
+    return (jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1), cols),
+            jax.tree_util.tree_map(lambda a: a[0], aux))
+
+
 def _shoot(build, theta, y, active, *, params, control, lanes, driven):
     """One period of every active cell from ``y`` with the Jacobians of the end state and of
     the metrics with respect to the start state (and the parameters if ``params``), and the
@@ -129,7 +164,7 @@ def _shoot(build, theta, y, active, *, params, control, lanes, driven):
             return out, res
 
         z0 = jnp.zeros(d + n if params else d, flat.dtype)
-        (j_out, j_m), res = jax.jacfwd(period, has_aux=True)(z0)
+        (j_out, j_m), res = jacobian_by_columns(period, z0)
         return res, j_out, j_m, flatten_dynamical(res.final_state) - flat
 
     return jax.vmap(one)(build, theta, y, active)
