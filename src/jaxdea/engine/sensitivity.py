@@ -9,12 +9,11 @@ period from ``y*`` are differentiated implicitly:
 
     dy*/dtheta = (I - dPhi/dy)^-1 dPhi/dtheta,    dm/dtheta = dm/dtheta|_y + dm/dy dy*/dtheta,
 
-with ``dPhi/dy``, ``dPhi/dtheta``, ``dm/dy`` and ``dm/dtheta`` from forward-mode passes
-through one period of the lane engine, one per direction over the d dynamical states and the
-n parameters (:func:`jacobian_by_columns`; cells are independent, so
-the same perturbation of every cell gives each cell its own Jacobian). The Newton pass that
-confirms convergence is that same pass: a converged cell costs ``d + n`` forward passes of
-one period on top of its primal solve.
+with ``dPhi/dy``, ``dPhi/dtheta``, ``dm/dy`` and ``dm/dtheta`` from forward mode through one
+period of the lane engine, tangents over the d dynamical states and the n parameters (one
+``jax.jacfwd`` on several devices, one pass per direction on one: :func:`jacobian_by_columns`;
+cells are independent, so the same perturbation of every cell gives each cell its own
+Jacobian). The Newton pass that confirms convergence is that same pass.
 Nothing differentiates through the settling or the Newton iterations: they run on the host.
 
 :func:`implicit` wraps a host-side solver ``theta -> (values, jacobians)`` into a
@@ -114,16 +113,18 @@ def jacobian_by_columns(f, z0: jax.Array):
     """``jax.jacfwd(f, has_aux=True)(z0)`` computed as one ``jax.jvp`` per basis direction,
     in sequence (``jax.lax.map``), instead of with the m tangents batched.
 
-    ``f`` runs the lane engine (a ``while_loop`` of adaptive steps). Under a ``vmap`` over
-    designs (:func:`_shoot`), XLA's CPU code for that loop with a batch of
-    tangents is far slower than the batch's size times one tangent: the design solve's shoot
-    (17 designs x 8 cells, m = 14) took 5.8 s with ``jacfwd``, 11.7 s with the tangents
-    mapped two at a time and 1.2 s one at a time, and compiled in 17 s against 32 s, with
-    the same Jacobian to 1e-13 relative. Without that ``vmap`` (a power map's shoot,
-    :func:`jaxdea.engine.periodic.shoot_period`, d = 5) ``jacfwd`` is the faster: 1.0-1.2 s
-    against 1.5-1.6 s on the periodic bench sweep (128 cells), though it compiles 5 s
-    longer; that shoot keeps it. The adaptive steps follow the primal only, so each pass
-    takes the same steps.
+    ``f`` runs the lane engine (a ``while_loop`` of adaptive steps). Compiled for one
+    device under the ``vmap`` over designs of :func:`_shoot`, that loop with a batch of
+    tangents is far slower than the batch's size times one tangent, and this is the faster:
+    17 designs x 8 cells, m = 14: 1.2-1.3 s against ``jacfwd``'s 5.5-5.8 s (two tangents at a
+    time: 11.7 s), compiled in 17 s against 32 s; 8 designs, m = 9: 0.46 s against 1.6 s.
+    The compiled program with ``jacfwd`` is twice the size of the same program split over
+    two devices (``shard_map``: 15.7 k multiplies against 5.5 k per device), and split over
+    two devices ``jacfwd`` is the faster: 0.12 s against 0.27 s (same Jacobian to 1e-11). So
+    :func:`_stages` uses this on one device and ``jacfwd`` on several; a power map's shoot
+    (:func:`jaxdea.engine.periodic.shoot_period`, no vmap over designs, d = 5) keeps
+    ``jacfwd`` on one device too: 1.0-1.2 s against 1.5-1.6 s on the periodic bench sweep.
+    The adaptive steps follow the primal only, so each pass takes the same steps.
 
     **Arguments:**
 
@@ -144,12 +145,13 @@ def jacobian_by_columns(f, z0: jax.Array):
             jax.tree_util.tree_map(lambda a: a[0], aux))
 
 
-def _shoot(build, theta, y, active, *, params, control, lanes, driven):
+def _shoot(build, theta, y, active, *, params, control, lanes, driven, columns=False):
     """One period of every active cell from ``y`` with the Jacobians of the end state and of
     the metrics with respect to the start state (and the parameters if ``params``), and the
     gap ``Phi_T(y) - y``. The Newton step is solved on the host
     (:func:`jaxdea.engine.periodic.newton_step`): a batched LAPACK solve inside a program
-    split over devices can deadlock XLA's CPU thread pool."""
+    split over devices can deadlock XLA's CPU thread pool. ``columns``: the Jacobians by
+    :func:`jacobian_by_columns` (one device) rather than ``jax.jacfwd`` (several)."""
 
     def one(build, th, y, act):
         flat = flatten_dynamical(y)
@@ -164,7 +166,8 @@ def _shoot(build, theta, y, active, *, params, control, lanes, driven):
             return out, res
 
         z0 = jnp.zeros(d + n if params else d, flat.dtype)
-        (j_out, j_m), res = jacobian_by_columns(period, z0)
+        (j_out, j_m), res = (jacobian_by_columns(period, z0) if columns
+                             else jax.jacfwd(period, has_aux=True)(z0))
         return res, j_out, j_m, flatten_dynamical(res.final_state) - flat
 
     return jax.vmap(one)(build, theta, y, active)
@@ -187,7 +190,7 @@ def _stages(devices: tuple):
     runs its own designs to the end; no collective) or on one device."""
     if len(devices) < 2:
         return (lambda b, th, y0, **kw: _host(_SETTLE(b, th, y0, **kw)),
-                lambda b, th, y, a, **kw: _host(_SHOOT(b, th, y, a, **kw)))
+                lambda b, th, y, a, **kw: _host(_SHOOT(b, th, y, a, columns=True, **kw)))
     settle, shoot = cell_sharded(_settle_split, devices), cell_sharded(_shoot_split, devices)
     return (lambda b, th, y0, **kw: settle(None, b, th, y0, **kw),
             lambda b, th, y, a, **kw: shoot(None, b, th, y, a, **kw))
