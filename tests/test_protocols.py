@@ -187,16 +187,56 @@ def test_paper_early_exit_equals_the_full_run(model):
         jaxdea.sweep(model, mass=1e-3, damping=0.1, freq=FREQ, early_exit=0)
 
 
+def test_stage_order_gives_every_device_an_equal_share_of_every_block():
+    """A warm-started chain's stage deals each block (mass) evenly over the devices, lowest
+    frequency first on each: the first stage runs one block at a time, and plain round-robin
+    over all columns would give all of a block to one device (two devices, even blocks)."""
+    from jaxdea.engine.warmstart import stage_order
+
+    freq = np.tile([30.0, 10.0, 50.0, 20.0, 40.0], 4)  # 4 blocks of 5 columns
+    block = np.repeat(np.arange(4), 5)
+    order = stage_order(freq, block, 2)
+    assert order.size == 2 * 4 * 3 and set(order) == set(range(20))  # each block padded
+    for slice_ in order.reshape(2, -1):
+        assert (np.diff(freq[slice_]) >= 0).all()
+        assert (np.bincount(block[slice_], minlength=4) == 3).all()
+    assert (np.sort(stage_order(freq[:5], block[:5], 1)) == np.arange(5)).all()
+
+
+def test_predictor_extrapolates_polynomials_exactly_and_drops_missing_orbits():
+    """The warm start's predictor continues a polynomial of degree k - 1 through the last k
+    stages exactly, uses fewer stages where older orbits are missing, and its history keeps
+    only orbits of consecutive converged stages."""
+    from jaxdea.engine.warmstart import predict, remember
+
+    def orbit(j):  # (3 cells, d = 2): cubic in the stage index
+        return np.array([[j ** 3 - 2 * j, 1.0 + j], [0.5 * j ** 2, -j], [j, 2.0]])
+
+    history = np.stack([orbit(j) for j in (4, 3, 2, 1)])  # newest first
+    np.testing.assert_allclose(predict(history), orbit(5), rtol=1e-12)
+    history[2:, 0] = np.nan  # cell 0: only two stages -> the secant
+    np.testing.assert_allclose(predict(history)[0], 2 * orbit(4)[0] - orbit(3)[0])
+    history[1:, 1] = np.nan  # cell 1: one stage -> its orbit
+    np.testing.assert_allclose(predict(history)[1], orbit(4)[1])
+    np.testing.assert_allclose(predict(history)[2], orbit(5)[2], rtol=1e-12)
+    new = remember(history, orbit(5), ok=np.array([True, True, False]),
+                   recent=np.array([True, False, True]))
+    np.testing.assert_allclose(new[:2, 0], [orbit(5)[0], orbit(4)[0]])  # consecutive
+    assert np.isnan(new[1:, 1]).all() and (new[0, 1] == orbit(5)[1]).all()  # not
+    assert (new[0, 2] == orbit(4)[2]).all() and np.isnan(new[1:, 2]).all()  # failed: seed
+
+
 def test_neighbour_warm_starts_equal_the_from_rest_map(model):
     """``start="neighbour"`` (issue 16): each cell continued by chord iterations from its
     neighbouring damping's orbit gives the from-rest periodic map's numbers (tolerance 1e-6
     on the state: ~1e-4 on the powers) in fewer periods per cell, for every cell after the
-    chain's first stage (the heaviest damping, solved from rest); a cell below
-    ``REST_BELOW`` is solved from rest exactly as ``start="rest"`` solves it."""
+    chain's first stage (the heaviest damping: solved from rest for the first mass, and
+    continued from the mass before for the others); a cell below ``REST_BELOW`` is solved
+    from rest exactly as ``start="rest"`` solves it."""
     from jaxdea.engine.warmstart import REST_BELOW
 
-    kw = dict(mass=[2e-3], damping=np.logspace(-1, 1, 5), freq=[REST_BELOW / 2, 60.0, 110.0, 160.0],
-              protocol="periodic", progress=False)
+    kw = dict(mass=[2e-3, 2.5e-3, 3e-3], damping=np.logspace(-1, 1, 5),
+              freq=[REST_BELOW / 2, 60.0, 110.0, 160.0], protocol="periodic", progress=False)
     warm = jaxdea.powermap(model, start="neighbour", **kw)
     cold = jaxdea.powermap(model, **kw)
     assert warm.attrs["start"] == "neighbour" and cold.attrs["start"] == "rest"
@@ -207,6 +247,11 @@ def test_neighbour_warm_starts_equal_the_from_rest_map(model):
     chained = dict(c=slice(0, -1), f=slice(1, None))  # not the head stage, not < REST_BELOW
     fewer = warm.cycles_run.isel(chained) < cold.cycles_run.isel(chained)
     assert fewer.mean() > 0.8, warm.cycles_run.values
+    head = dict(c=-1, f=slice(1, None))  # the first stage: from rest for the first mass only
+    first, later = dict(head, M=0), dict(head, M=slice(1, None))
+    assert (warm.cycles_run.isel(first) == cold.cycles_run.isel(first)).all()
+    assert (warm.cycles_run.isel(later) < cold.cycles_run.isel(later)).all(), \
+        warm.cycles_run.values
     low = dict(f=0)  # from rest in both: the same solve, the same numbers
     np.testing.assert_allclose(warm.P_out.isel(low), cold.P_out.isel(low), rtol=1e-12)
     # a protocol object says the same, and the setting is checked before any compute

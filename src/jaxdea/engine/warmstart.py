@@ -6,12 +6,14 @@ costs about ten periods). On a map, neighbouring payloads have nearby orbits *an
 Jacobians, so :func:`neighbour_chain` solves the grid one payload-axis stage at a time:
 
 1. the first stage (the heaviest load: its orbits are unique and settle fastest) is solved
-   from rest by :func:`jaxdea.engine.periodic.periodic_cells`, which also hands back each
-   cell's Jacobian;
-2. every later stage starts from its neighbour's orbit and Jacobian and runs chord
-   iterations (:func:`chord_cells`): ``y <- y - (J - I)^-1 (Phi_T(y) - y)`` with ``J`` kept
-   current by Broyden's rank-one update from each iteration's secant, so that each
-   iteration costs one plain period instead of a shot;
+   from rest for the block's first mass by :func:`jaxdea.engine.periodic.periodic_cells`,
+   which also hands back each cell's Jacobian, and continued from mass to mass for the
+   others (:func:`first_stage`);
+2. every later stage starts from its neighbour's orbit, extrapolated from the last stages'
+   orbits (:func:`predict`), and Jacobian and runs chord iterations (:func:`chord_cells`):
+   ``y <- y - (J - I)^-1 (Phi_T(y) - y)`` with ``J`` kept current by Broyden's rank-one
+   update from each iteration's secant, so that each iteration costs one plain period
+   instead of a shot;
 3. a cell that has not converged after :data:`CHORD_ITERATIONS` iterations, whose period
    fails, or whose orbit is not stable (:data:`~jaxdea.engine.periodic.STABLE_MULTIPLIER`,
    checked with a true Jacobian wherever the updated one puts the Floquet radius above
@@ -24,6 +26,8 @@ orbit of every cell. Measured: ``bench/full_map_slice.py`` and ``docs/models.md`
 """
 
 from __future__ import annotations
+
+import math
 
 import equinox as eqx
 import jax
@@ -61,6 +65,15 @@ CHORD_ITERATIONS = 8
 #: instead of 12 s; about even on that grid, and the chord calls' length no longer depends
 #: on the lowest frequency of the map.
 REST_BELOW = 10.0
+#: Narrower lane pools a chord call's period ends in (:func:`jaxdea.engine.lanes.lane_pools`).
+#: A call lasts as long as its longest period, and after the first iterations only a few
+#: cells of a stage are still pending: in a 128-lane pool each of their steps costs the
+#: full width. One period of an 11-200 Hz stage (2400 cells, 2 devices), after compile:
+#: 20 cells active 47 -> 10.6 ms with a 32-lane tail (16 lanes: 12.5), 200 cells 40.7 ->
+#: 19.7 ms, all 2400 98 -> 66 ms.
+CHORD_TAIL_POOLS = (32,)
+#: Orbits of the last stages a warm start extrapolates from (:func:`predict`; 5: quartic).
+PREDICTOR_POINTS = 5
 #: Floquet radius of the Broyden-updated Jacobian above which a chord-converged orbit's
 #: stability is checked with a true Jacobian (one shot).
 VERIFY_RADIUS = 0.98
@@ -68,13 +81,15 @@ VERIFY_RADIUS = 0.98
 
 def _one_period(actuator, loadings, initial, active, *, control, lanes, driven):
     return run_protocol(actuator, loadings, cycles=1, average=1, initial=initial,
-                        active=active, control=control, pools=(lanes,), driven=driven)
+                        active=active, control=control,
+                        pools=tuple(p for p in (lanes,) + CHORD_TAIL_POOLS if p <= lanes),
+                        driven=driven)
 
 
 def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
                 jacobian: np.ndarray, *, tol: float = 1e-6,
                 iterations: int = CHORD_ITERATIONS, control: StepControl = StepControl(),
-                lanes: int = 128, devices: tuple = (), driven=None):
+                lanes: int = 128, devices: tuple = (), driven=None, active=None):
     """Periodic orbits by chord iterations with Broyden-updated Jacobians, from given states.
 
     **Arguments:**
@@ -88,6 +103,8 @@ def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
       below which a cell has converged, as in ``periodic_cells``.
     - `iterations`: most chord iterations.
     - `control`, `lanes`, `devices`, `driven`: as for ``periodic_cells``.
+    - `active`: bool per cell, iterate only these (the others are skipped at no cost and
+      come back not converged); default all.
 
     **Returns:**
 
@@ -102,9 +119,9 @@ def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
     flat = np.asarray(flatten_dynamical(y))
     n = flat.shape[0]
     jac = np.array(jacobian, dtype=float)
-    fresh = ~np.isfinite(jac).all(axis=(1, 2))  # shot first: their Jacobians are exact
+    pending = np.ones(n, bool) if active is None else np.array(active, bool)
+    fresh = pending & ~np.isfinite(jac).all(axis=(1, 2))  # shot first: exact Jacobians
     out, prev = None, None
-    pending = np.ones(n, bool)
     converged = np.zeros(n, bool)
     steps, cycles = np.zeros(n, np.int64), np.zeros(n, np.int64)
     for k in range(int(iterations)):
@@ -152,14 +169,145 @@ def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
     return metrics, jac, converged
 
 
-def predict(last: np.ndarray, before: np.ndarray) -> np.ndarray:
-    """The next stage's start (flat dynamical states, ``(n, d)``): the secant predictor
-    ``2 y_j - y_(j-1)`` from the orbits of the last two stages (a map's axes are log- or
-    evenly spaced, so equal steps in index are equal steps in the axis' own scale), or
-    ``y_j`` where the earlier one is missing (NaN: it failed, or the chain just began).
-    On the DCDEA-LS bench grid it cut the chord periods per cell from 5.0 to 4.3."""
-    guess = 2.0 * last - before
-    return np.where(np.isfinite(guess).all(axis=1, keepdims=True), guess, last)
+def predict(history: np.ndarray) -> np.ndarray:
+    """The next stage's start (flat dynamical states, ``(n, d)``): per cell, the polynomial
+    through its orbits of the last stages, extrapolated one stage on (a map's axes are log-
+    or evenly spaced, so equal steps in index are equal steps in the axis' own scale).
+
+    Each cell uses as many of the last stages as it has (newest first, up to
+    ``len(history)``; an orbit is missing, NaN, where it failed or the chain just began):
+    ``y_j`` alone, the secant ``2 y_j - y_(j-1)``, then ``3 y_j - 3 y_(j-1) + y_(j-2)``, and
+    so on (the k-th backward difference dropped). Measured on DCDEA-LS, drive A, 7 masses
+    (every 8th of the full map's 50) x 50 dampings x 100 frequencies (every 10th of its
+    0.2 Hz grid), all 35 000 cells steady in every variant: periods per cell over the whole
+    map (the cells solved from rest included) 4.27 with the secant, 3.56 with three points,
+    3.09 with four, 2.92 with five (:data:`PREDICTOR_POINTS`), 3.00 with six; P_out within
+    9.4e-5 and P_in within 3.3e-6 of the secant's map in every variant. (Earlier, on another
+    grid: 5.0 periods per chord cell with ``y_j`` alone, 4.3 with the secant.)
+
+    **Arguments:**
+
+    - `history`: ``(k, n, d)`` the cells' orbits of the last ``k`` stages, newest first.
+
+    **Returns:**
+
+    ``(n, d)`` start states.
+    """
+    guess = history[0]
+    for p in range(2, len(history) + 1):
+        coef = np.array([(-1.0) ** i * math.comb(p, i + 1) for i in range(p)])
+        g = np.tensordot(coef, history[:p], axes=1)
+        guess = np.where(np.isfinite(g).all(axis=1, keepdims=True), g, guess)
+    return guess
+
+
+def remember(history: np.ndarray, flat: np.ndarray, ok: np.ndarray,
+             recent: np.ndarray) -> np.ndarray:
+    """The predictor's ``history`` after a stage: ``flat`` first where the cell converged
+    (``ok``), its older orbits kept only where the stage before converged too (``recent``:
+    consecutive stages); where the cell failed, its last orbit stays as the seed and the
+    older ones are dropped (NaN)."""
+    older = np.where((ok & recent)[None, :, None], history[:-1], np.nan)
+    dropped = np.concatenate([history[:1], np.full_like(history[1:], np.nan)])
+    return np.where(ok[None, :, None], np.concatenate([flat[None], older]), dropped)
+
+
+def stage_order(freq: np.ndarray, block: np.ndarray, n_dev: int) -> np.ndarray:
+    """Slot order of one stage's columns: ``n_dev`` equal device slices, each holding an
+    equal share of every block's columns (padded by repeating a column of the same block),
+    lowest frequency first within a slice.
+
+    Why per block: the first stage runs one block at a time (:func:`first_stage`), and a
+    block dealt unevenly would leave a device idle (with two devices and an even number of
+    blocks, plain round-robin over all columns gives each block's columns to one device).
+
+    **Arguments:**
+
+    - `freq`: ``(m,)`` the columns' frequencies.
+    - `block`: ``(m,)`` the columns' block (mass) indices.
+    - `n_dev`: the number of devices.
+
+    **Returns:**
+
+    Indices into the columns, a multiple of ``n_dev`` long.
+    """
+    parts = []
+    for b in np.unique(block):
+        cols = np.nonzero(block == b)[0]
+        parts.append(cols[schedule(freq[cols], n_dev)].reshape(n_dev, -1))
+    slots = np.concatenate(parts, axis=1)
+    return np.concatenate([row[np.argsort(freq[row], kind="stable")] for row in slots])
+
+
+def first_stage(actuator: ConeActuator, loadings: Loading, block: np.ndarray,
+                partner: np.ndarray, *, lanes: int, **kw):
+    """The chain's first stage, continued along the blocks (the map's first axis: mass).
+
+    The first block is solved from rest (:func:`~jaxdea.engine.periodic.periodic_cells`,
+    with the Jacobians of its shots); each later block starts from the orbits and
+    Jacobians of the block before it at the same frequency (and phase), with the secant
+    predictor (:func:`predict`), by chord iterations (:func:`chord_cells`). Cells whose
+    chord iteration fails, or that have no converged neighbour to start from, are solved
+    from rest at the end, in one call. Every call runs on the whole stage's slots with only
+    the block's cells active, so all of them share the compiled programs of the stages and
+    batches after it.
+
+    The first stage is the heaviest load (its orbits are unique and settle fastest), so a
+    continued orbit is the from-rest one to the Newton tolerance. Measured:
+    ``bench/neighbour_profile.py`` (``docs/models.md`` section 4).
+
+    **Arguments:**
+
+    - `actuator`, `loadings`: the stage's slots (leading axis).
+    - `block`: ``(n,)`` each slot's block index.
+    - `partner`: ``(n,)`` for each slot, a slot of the block before with the same frequency
+      (any slot for the first block's).
+    - `lanes`: lanes per device.
+    - `kw`: ``tol``, ``control``, ``devices``, ``driven`` as for ``periodic_cells``.
+
+    **Returns:**
+
+    ``(metrics, jacobian, ok)`` per slot: host :class:`CycleMetrics`, the one-period
+    Jacobians (NaN where none is known) and whether the cell converged.
+    """
+    blocks = np.unique(block)
+    mine = block == blocks[0]
+    res, jac = periodic_cells(actuator, loadings, lanes=lanes, with_jacobian=True,
+                              active=mine, **kw)
+    res, jac = to_host(res), np.asarray(jac)
+    ok = mine & (np.asarray(res.status) == 0)
+    last = np.where(ok[:, None], np.asarray(flatten_dynamical(res.final_state)), np.nan)
+    before = np.full_like(last, np.nan)
+    tried = np.zeros_like(ok)
+    for b in blocks[1:]:
+        mine = block == b
+        guess = predict(np.stack([last[partner], before[partner]]))
+        go = mine & np.isfinite(guess).all(axis=1)
+        tried |= go
+        start = to_host(with_dynamical(res.final_state, jnp.asarray(
+            np.where(go[:, None], guess, 0.0))))
+        r, new_jac, conv = chord_cells(actuator, loadings, start, jac[partner], lanes=lanes,
+                                       active=go, **kw)
+        res = to_host(select_cells(go, r, res))
+        jac = np.where(go[:, None, None], new_jac, jac)
+        ok = np.where(mine, go & conv, ok)
+        flat = np.asarray(flatten_dynamical(r.final_state))
+        before = np.where(mine[:, None], np.where((ok & ok[partner])[:, None],
+                                                  last[partner], np.nan), before)
+        last = np.where(mine[:, None], np.where(ok[:, None], flat, last[partner]), last)
+    late = (block != blocks[0]) & ~ok
+    if late.any():  # as start="rest" would, with Jacobians for the stages after
+        r, js = periodic_cells(actuator, loadings, lanes=lanes, with_jacobian=True,
+                               active=late, **kw)
+        spent = {k: np.where(tried, np.asarray(getattr(res, k)), 0)  # the chord's periods
+                 for k in ("steps", "cycles_run")}
+        r = eqx.tree_at(lambda m: (m.steps, m.cycles_run), to_host(r), tuple(
+            np.asarray(getattr(r, k)) + v.astype(np.asarray(getattr(r, k)).dtype)
+            for k, v in spent.items()))
+        res = to_host(select_cells(late, r, res))
+        jac = np.where(late[:, None, None], np.asarray(js), jac)
+        ok = np.where(late, np.asarray(r.status) == 0, ok)
+    return res, jac, ok
 
 
 def _scatter(results, cells, res):
@@ -210,40 +358,43 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     chained = first[freq[first] >= REST_BELOW]  # stage 0's cells at or above REST_BELOW
     columns = chained[:, None] + rest * np.arange(n_chain)  # (column, stage) -> cell
     rest_cells = np.setdiff1d(np.arange(n), columns.ravel())
-    order = schedule(freq[chained], n_dev) if chained.size else np.zeros(0, int)
+    block = chained // (n_chain * rest)  # each column's block (mass)
+    order = stage_order(freq[chained], block, n_dev) if chained.size else np.zeros(0, int)
     keep = np.unique(order, return_index=True)[1]  # one slot per cell (padding repeats one)
+    # each slot's neighbour in the block before (same frequency and phase), for the first
+    # stage's continuation along the blocks
+    slot_of = np.empty(chained.size, int)
+    slot_of[order[keep]] = keep
+    below = np.searchsorted(chained, chained[order] - n_chain * rest)
+    partner = np.where(block[order] > block.min(initial=0),
+                       slot_of[np.minimum(below, chained.size - 1)], np.arange(order.size))
     lanes = default_lanes(order.size // n_dev) if order.size else None
     kw = dict(tol=float(tol), control=control, devices=devices, driven=driven)
-    results, seed, last, before, jac, failed = None, None, None, None, None, [rest_cells]
-    recent = None  # per column: ``last`` converged in the stage just done
+    results, seed, history, jac, failed = None, None, None, None, [rest_cells]
+    recent = None  # per column: its orbit converged in the stage just done
     for j in range(n_chain - 1 if chained.size else -1, -1, -1):
         cells = columns[:, j][order]
         ld = take_cells(loadings, cells)
-        if last is None:
-            # every cell active, as in the from-rest batches below: one compiled program
-            # for both (an absent mask is another program, ~7 s of compile per map)
-            res, jac = periodic_cells(actuator, ld, lanes=lanes, with_jacobian=True,
-                                      active=np.ones(cells.size, bool), **kw)
-            res = to_host(res)
-            ok = np.asarray(res.status) == 0
+        if history is None:  # from rest for the first block, continued along the blocks
+            res, jac, ok = first_stage(actuator, ld, block[order], partner, lanes=lanes,
+                                       **kw)
         else:
-            start = to_host(with_dynamical(seed, jnp.asarray(predict(last, before))))
+            start = to_host(with_dynamical(seed, jnp.asarray(predict(history))))
             res, new_jac, ok = chord_cells(actuator, ld, start, jac, lanes=lanes, **kw)
             jac = np.where(ok[:, None, None], new_jac, jac)
         if results is None:
             results = _blank(res, n)
         _scatter(results, cells[keep], take_cells(res, keep))
         failed.append(cells[keep][~ok[keep]])
-        # the column's seeds: the last orbit that converged, and the one before it (for the
-        # predictor; NaN when they are not from consecutive stages)
+        # the column's seeds: the last orbit that converged, and the ones before it from
+        # consecutive stages (for the predictor)
         flat = np.asarray(flatten_dynamical(res.final_state))
-        if last is None:
-            seed, last = res.final_state, np.where(ok[:, None], flat, np.nan)
-            before = np.full_like(last, np.nan)
+        if history is None:
+            seed = res.final_state
+            history = np.full((PREDICTOR_POINTS,) + flat.shape, np.nan)
             jac = np.where(ok[:, None, None], jac, np.nan)
-        else:
-            before = np.where((ok & recent)[:, None], last, np.nan)
-            last = np.where(ok[:, None], flat, last)
+            recent = np.zeros_like(ok)
+        history = remember(history, flat, ok, recent)
         recent = ok
     failed = np.concatenate(failed)
     # the stage's own shape (its programs are compiled already), or without a chain all cells
