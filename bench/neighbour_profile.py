@@ -11,9 +11,11 @@ The stages of :func:`jaxdea.engine.warmstart.neighbour_chain` are timed by wrapp
 this process (the engine is not changed):
 
 - ``rest``: :func:`~jaxdea.engine.periodic.periodic_cells` calls, i.e. the chain's first
-  stage (solved from rest, with Newton shooting for the Jacobians the chord iterations start
-  from: ``first_stage``) and the batches solved from rest after the chain (cells below
-  ``REST_BELOW`` and cells whose chord iteration failed: ``rest_after_chain``);
+  stage's from-rest solves (its first mass, and cells of the others whose continuation
+  failed; with Newton shooting for the Jacobians the chord iterations start from:
+  ``first_stage``; the continuation along the masses is chord work, counted below) and
+  the batches solved from rest after the chain (cells below ``REST_BELOW`` and cells whose
+  chord iteration failed: ``rest_after_chain``);
 - ``chord``: the chord iterations of the later stages (:func:`~jaxdea.engine.warmstart.
   chord_cells`), of which ``chord_periods`` is the plain one-period engine calls and
   ``chord_shots`` the true Jacobians of cells that arrived without one or whose stability is
