@@ -276,12 +276,13 @@ def first_stage(actuator: ConeActuator, loadings: Loading, block: np.ndarray,
                               active=mine, **kw)
     res, jac = to_host(res), np.asarray(jac)
     ok = mine & (np.asarray(res.status) == 0)
-    last = np.where(ok[:, None], np.asarray(flatten_dynamical(res.final_state)), np.nan)
-    before = np.full_like(last, np.nan)
+    flat = np.asarray(flatten_dynamical(res.final_state))
+    history = remember(np.full((2,) + flat.shape, np.nan), flat, ok, np.zeros_like(ok))
     tried = np.zeros_like(ok)
     for b in blocks[1:]:
         mine = block == b
-        guess = predict(np.stack([last[partner], before[partner]]))
+        behind = history[:, partner]  # the block before's orbits at the same frequency
+        guess = predict(behind)
         go = mine & np.isfinite(guess).all(axis=1)
         tried |= go
         start = to_host(with_dynamical(res.final_state, jnp.asarray(
@@ -292,22 +293,29 @@ def first_stage(actuator: ConeActuator, loadings: Loading, block: np.ndarray,
         jac = np.where(go[:, None, None], new_jac, jac)
         ok = np.where(mine, go & conv, ok)
         flat = np.asarray(flatten_dynamical(r.final_state))
-        before = np.where(mine[:, None], np.where((ok & ok[partner])[:, None],
-                                                  last[partner], np.nan), before)
-        last = np.where(mine[:, None], np.where(ok[:, None], flat, last[partner]), last)
+        history = np.where(mine[None, :, None],
+                           remember(behind, flat, ok, ok[partner]), history)
     late = (block != blocks[0]) & ~ok
     if late.any():  # as start="rest" would, with Jacobians for the stages after
         r, js = periodic_cells(actuator, loadings, lanes=lanes, with_jacobian=True,
                                active=late, **kw)
-        spent = {k: np.where(tried, np.asarray(getattr(res, k)), 0)  # the chord's periods
-                 for k in ("steps", "cycles_run")}
-        r = eqx.tree_at(lambda m: (m.steps, m.cycles_run), to_host(r), tuple(
-            np.asarray(getattr(r, k)) + v.astype(np.asarray(getattr(r, k)).dtype)
-            for k, v in spent.items()))
+        r = with_spent(to_host(r), res, tried)  # and the chord's periods before
         res = to_host(select_cells(late, r, res))
         jac = np.where(late[:, None, None], np.asarray(js), jac)
         ok = np.where(late, np.asarray(r.status) == 0, ok)
     return res, jac, ok
+
+
+def with_spent(metrics: CycleMetrics, before: CycleMetrics, where=None) -> CycleMetrics:
+    """``metrics`` (host arrays) of a solve from rest with the steps and periods ``before``
+    (another solve of the same cells, e.g. chord iterations that failed) added, in the
+    cells ``where`` (default all): ``steps`` and ``cycles_run`` count all of a cell's work."""
+    def total(k):
+        now, spent = np.asarray(getattr(metrics, k)), np.asarray(getattr(before, k))
+        return now + (spent if where is None else np.where(where, spent, 0)).astype(now.dtype)
+
+    return eqx.tree_at(lambda m: (m.steps, m.cycles_run), metrics,
+                       (total("steps"), total("cycles_run")))
 
 
 def _scatter(results, cells, res):
@@ -366,8 +374,8 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     slot_of = np.empty(chained.size, int)
     slot_of[order[keep]] = keep
     below = np.searchsorted(chained, chained[order] - n_chain * rest)
-    partner = np.where(block[order] > block.min(initial=0),
-                       slot_of[np.minimum(below, chained.size - 1)], np.arange(order.size))
+    partner = np.where(block[order] > 0, slot_of[np.minimum(below, chained.size - 1)],
+                       np.arange(order.size))
     lanes = default_lanes(order.size // n_dev) if order.size else None
     kw = dict(tol=float(tol), control=control, devices=devices, driven=driven)
     results, seed, history, jac, failed = None, None, None, None, [rest_cells]
@@ -408,8 +416,6 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
         back = to_host(periodic_cells(actuator, take_cells(loadings, sub), active=real,
                                       lanes=lanes or default_lanes(size // n_dev), **kw))
         results = _blank(back, n) if results is None else results
-        spent = {k: np.asarray(getattr(results, k))[sub] for k in ("steps", "cycles_run")}
-        back = eqx.tree_at(lambda m: (m.steps, m.cycles_run), back, tuple(
-            np.asarray(getattr(back, k)) + v for k, v in spent.items()))
+        back = with_spent(back, take_cells(results, sub))
         _scatter(results, sub[real], take_cells(back, real))
     return results
