@@ -16,11 +16,12 @@ this process (the engine is not changed):
   ``first_stage``; the continuation along the masses is chord work, counted below) and
   the batches solved from rest after the chain (cells below ``REST_BELOW`` and cells whose
   chord iteration failed: ``rest_after_chain``);
-- ``chord``: the chord iterations of the later stages (:func:`~jaxdea.engine.warmstart.
-  chord_cells`), of which ``chord_periods`` is the plain one-period engine calls and
-  ``chord_shots`` the true Jacobians of cells that arrived without one or whose stability is
-  in doubt; the rest of ``chord`` is host work (Broyden updates, Newton steps, Floquet
-  radii);
+- ``chord``: the chord iterations of the first stage's later masses
+  (:func:`~jaxdea.engine.warmstart.chord_cells`) and of the later stages
+  (:func:`~jaxdea.engine.warmstart.chord_columns`), of which ``chord_periods`` is the plain
+  one-period engine calls and ``chord_shots`` the true Jacobians of cells that arrived
+  without one or whose stability is in doubt; the rest of ``chord`` is host work (Broyden
+  updates, Newton steps, Floquet radii);
 - ``compile``: XLA's compile time inside the timed run (JAX's backend-compile events),
   which falls inside the stages above.
 
@@ -78,6 +79,22 @@ class Clock:
             return out
         return timed
 
+    def wrap_generator(self, name: str, fn):
+        """As :meth:`wrap` for a generator: the time spent inside it, between its yields."""
+        def timed(*args, **kwargs):
+            gen = fn(*args, **kwargs)
+            while True:
+                compile0, t0 = self.compile, time.perf_counter()
+                try:
+                    item = next(gen)
+                except StopIteration:
+                    return
+                finally:
+                    self.seconds[name] += time.perf_counter() - t0
+                    self.calls[name].append((0.0, self.compile - compile0, None))
+                yield item
+        return timed
+
 
 def _period_steps(args, kwargs, out) -> int:
     """Steps of the active cells of a one-period call ``(actuator, loadings, y, active)``."""
@@ -115,6 +132,7 @@ def main() -> None:
     warmstart.cell_sharded = cell_sharded
     warmstart.periodic_cells = clock.wrap("rest", warmstart.periodic_cells, _rest_steps)
     warmstart.chord_cells = clock.wrap("chord", warmstart.chord_cells)
+    warmstart.chord_columns = clock.wrap_generator("chord", warmstart.chord_columns)
 
     model = jaxdea.load_config(ROOT / "configs" / "dcdea_ls.toml")
     mass, damping = np.logspace(-4, -2, 50)[:args.masses], np.logspace(-1, 1, 50)

@@ -226,6 +226,65 @@ def test_predictor_extrapolates_polynomials_exactly_and_drops_missing_orbits():
     assert (new[0, 2] == orbit(4)[2]).all() and np.isnan(new[1:, 2]).all()  # failed: seed
 
 
+def test_chord_columns_repeat_the_stage_by_stage_chain_iteration_for_iteration(model):
+    """The warm-started chain's later stages, every column at its own pace
+    (``chord_columns``), do for every cell exactly what the stage-by-stage chain does
+    (``chord_cells`` on a whole stage at a time, then ``predict``/``remember``): the same
+    periods, steps and status, and the same powers to round-off (a cell's lane position
+    differs). Three columns (two of them alike, as padding makes them) of six stages."""
+    from jaxdea.engine.batch import take_cells
+    from jaxdea.engine.periodic import flatten_dynamical, periodic_cells, with_dynamical
+    from jaxdea.engine.warmstart import (
+        PREDICTOR_POINTS,
+        chord_cells,
+        chord_columns,
+        predict,
+        remember,
+    )
+    from jaxdea.studies.loadings import make_loadings
+
+    damping, freq = np.logspace(-1, 1, 6), np.array([60.0, 160.0, 60.0])
+    loadings = make_loadings(model, 2e-3, damping[:, None], freq[None, :])
+    slots = np.arange(damping.size * freq.size).reshape(damping.size, -1).T  # (column, stage)
+    kw = dict(lanes=3, tol=1e-6)
+    first = take_cells(loadings, slots[:, -1])
+    res, jac = periodic_cells(model.actuator, first, with_jacobian=True, active=np.ones(3, bool),
+                              **kw)
+    ok = np.asarray(res.status) == 0
+    flat = np.asarray(flatten_dynamical(res.final_state))
+    seed = res.final_state
+
+    def start():
+        return (remember(np.full((PREDICTOR_POINTS,) + flat.shape, np.nan), flat, ok,
+                         np.zeros_like(ok)), np.where(ok[:, None, None], jac, np.nan))
+
+    history, j = start()  # the reference: one stage at a time
+    recent, expect = ok, {}
+    for stage in range(damping.size - 2, -1, -1):
+        r, new_j, conv = chord_cells(model.actuator, take_cells(loadings, slots[:, stage]),
+                                     with_dynamical(seed, predict(history)), j, **kw)
+        j = np.where(conv[:, None, None], new_j, j)
+        history = remember(history, np.asarray(flatten_dynamical(r.final_state)), conv, recent)
+        recent = conv
+        for col in range(3):
+            expect[slots[col, stage]] = (int(r.cycles_run[col]), int(r.steps[col]),
+                                         int(r.status[col]), float(r.P_out[col]))
+    history, j = start()
+    got = {}
+    for where, cells, r, conv in chord_columns(model.actuator, loadings, slots, seed, history,
+                                               j, ok, **kw):
+        for i, cell in enumerate(cells):
+            got[int(cell)] = (int(r.cycles_run[i]), int(r.steps[i]), int(r.status[i]),
+                              float(r.P_out[i]))
+    assert sorted(got) == sorted(expect)
+    for cell, ref in expect.items():
+        assert got[cell][:3] == ref[:3], (cell, got[cell], ref)
+        np.testing.assert_allclose(got[cell][3], ref[3], rtol=1e-10)
+    assert all(v[2] == 0 for v in got.values())
+    periods = np.mean([v[0] for v in got.values()])  # 4.9 on this coarse grid
+    assert 1 <= periods < 6, periods
+
+
 def test_neighbour_warm_starts_equal_the_from_rest_map(model):
     """``start="neighbour"`` (issue 16): each cell continued by chord iterations from its
     neighbouring damping's orbit gives the from-rest periodic map's numbers (tolerance 1e-6

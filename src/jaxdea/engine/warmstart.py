@@ -74,6 +74,10 @@ REST_BELOW = 10.0
 CHORD_TAIL_POOLS = (32,)
 #: Orbits of the last stages a warm start extrapolates from (:func:`predict`; 5: quartic).
 PREDICTOR_POINTS = 5
+#: Cells per device whose stability :func:`chord_columns` checks in one shot call: a
+#: converged cell with a doubtful Floquet radius waits (its column pauses) until this many
+#: have gathered or nothing else is left to iterate.
+VERIFY_BATCH = 32
 #: Floquet radius of the Broyden-updated Jacobian above which a chord-converged orbit's
 #: stability is checked with a true Jacobian (one shot).
 VERIFY_RADIUS = 0.98
@@ -112,61 +116,134 @@ def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
     cell's final iterate, the updated Jacobians, and a bool per cell, true where the chord
     iteration converged to a stable orbit (elsewhere the metrics are meaningless).
     """
-    devices = tuple(devices or jax.devices()[:1])
-    one = cell_sharded(_one_period, devices)
-    shoot = cell_sharded(shoot_period, devices)
-    y = to_host(initial)
-    flat = np.asarray(flatten_dynamical(y))
-    n = flat.shape[0]
-    jac = np.array(jacobian, dtype=float)
-    pending = np.ones(n, bool) if active is None else np.array(active, bool)
-    fresh = pending & ~np.isfinite(jac).all(axis=(1, 2))  # shot first: exact Jacobians
-    out, prev = None, None
-    converged = np.zeros(n, bool)
-    steps, cycles = np.zeros(n, np.int64), np.zeros(n, np.int64)
-    for k in range(int(iterations)):
-        y = with_dynamical(y, jnp.asarray(flat))
-        r = to_host(one(actuator, loadings, y, pending & ~fresh if k == 0 else pending,
-                        control=control, lanes=lanes, driven=driven))
-        if k == 0 and fresh.any():
-            rs, js, _ = to_host(shoot(actuator, loadings, y, fresh, control=control,
-                                      lanes=min(lanes, SHOOTING_LANES), driven=driven))
-            r = to_host(select_cells(fresh, rs, r))
-            jac = np.where(fresh[:, None, None], np.asarray(js), jac)
-        gap = np.asarray(flatten_dynamical(r.final_state)) - flat
-        out = r if out is None else to_host(select_cells(pending, r, out))
-        steps += np.where(pending, np.asarray(r.steps), 0)
-        cycles += np.where(pending, np.asarray(r.cycles_run), 0)
-        if prev is not None:  # Broyden's update of J - I from the secant of this iteration
-            dx, dg = flat - prev[0], gap - prev[1]
-            miss = dg - np.einsum("nij,nj->ni", jac - np.eye(jac.shape[-1]), dx)
-            upd = miss[:, :, None] * dx[:, None, :] / np.maximum(
-                np.einsum("ni,ni->n", dx, dx), 1e-300)[:, None, None]
-            jac = np.where(pending[:, None, None], jac + upd, jac)
-        ok = np.asarray(r.status) == 0
-        step = newton_step(jac, gap, pending & ok)
-        size = np.asarray(step_residual(y, step))
-        newly = pending & ok & (size < tol)
-        converged |= newly
-        pending &= ok & ~newly & np.isfinite(step).all(axis=1)
-        prev = (flat, gap)
-        flat = flat + np.where(pending[:, None], step, 0.0)
-        if not pending.any():
+    chord = _Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
+                   lanes, driven)
+    seed = to_host(initial)
+    n = np.asarray(flatten_dynamical(seed)).shape[0]
+    it = _Iterates.begin(np.asarray(flatten_dynamical(seed)), jacobian,
+                         np.ones(n, bool) if active is None else np.array(active, bool))
+    for _ in range(int(iterations)):
+        newly, _ = chord.iterate(loadings, seed, it)
+        it.converged |= newly
+        if not it.pending.any():
             break
-    # stability: the updated Jacobian's Floquet radius, checked by one shot where doubtful
-    doubt = converged & ~(floquet_radius(jac) <= VERIFY_RADIUS)
-    if doubt.any():
-        _, js, _ = to_host(shoot(actuator, loadings, with_dynamical(y, jnp.asarray(flat)),
-                                 doubt, control=control, lanes=min(lanes, SHOOTING_LANES),
-                                 driven=driven))
-        jac = np.where(doubt[:, None, None], np.asarray(js), jac)
-        converged &= ~(doubt & ~(floquet_radius(jac) <= STABLE_MULTIPLIER))
-    fields = {k: np.asarray(getattr(out, k)) for k in PER_CELL}
-    fields.update(steps=steps.astype(fields["steps"].dtype),
-                  cycles_run=cycles.astype(fields["cycles_run"].dtype),
-                  status=np.where(converged, 0, 4).astype(fields["status"].dtype))
-    metrics = CycleMetrics(final_state=out.final_state, **fields)
-    return metrics, jac, converged
+    if it.converged.any():
+        it.converged &= ~chord.unstable(loadings, seed, it, it.converged)
+    return it.metrics(), it.jac, it.converged
+
+
+class _Iterates:
+    """The chord iteration's state per cell (host arrays): the iterate ``flat``, the
+    Jacobian ``jac``, the last iterate and its gap (Broyden's secant; NaN before the first),
+    which cells are still ``pending`` and which ``converged``, the iterations done ``k``, the
+    metrics ``out`` of each cell's last period and its ``steps`` and ``cycles`` so far."""
+
+    def __init__(self, flat, jac, pending):
+        n = flat.shape[0]
+        self.flat, self.jac, self.pending = flat, jac, pending
+        self.prev = (np.full_like(flat, np.nan), np.full_like(flat, np.nan))
+        self.converged = np.zeros(n, bool)
+        self.k = np.zeros(n, np.int64)
+        self.out = None
+        self.steps, self.cycles = np.zeros(n, np.int64), np.zeros(n, np.int64)
+
+    @classmethod
+    def begin(cls, flat, jacobian, pending):
+        return cls(np.array(flat, dtype=float), np.array(jacobian, dtype=float),
+                   np.array(pending, bool))
+
+    def restart(self, where, flat):
+        """Start a new chord iteration in the cells ``where`` from ``flat``."""
+        self.flat = np.where(where[:, None], flat, self.flat)
+        self.prev = tuple(np.where(where[:, None], np.nan, a) for a in self.prev)
+        self.pending |= where
+        self.converged &= ~where
+        for name in ("k", "steps", "cycles"):
+            setattr(self, name, np.where(where, 0, getattr(self, name)))
+
+    def metrics(self, where=slice(None)) -> CycleMetrics:
+        """:class:`CycleMetrics` (host) of the cells ``where``: their last period, the
+        steps and periods of the whole iteration, status 0 where converged else 4."""
+        fields = {k: np.asarray(getattr(self.out, k))[where] for k in PER_CELL}
+        fields.update(steps=self.steps[where].astype(fields["steps"].dtype),
+                      cycles_run=self.cycles[where].astype(fields["cycles_run"].dtype),
+                      status=np.where(self.converged[where], 0, 4).astype(
+                          fields["status"].dtype))
+        final = jax.tree_util.tree_map(lambda a: np.asarray(a)[where], self.out.final_state)
+        return CycleMetrics(final_state=final, **fields)
+
+
+class _Chord:
+    """One chord iteration of many cells at a time: the compiled programs and settings."""
+
+    def __init__(self, actuator, devices, tol, control, lanes, driven):
+        self.actuator, self.tol = actuator, tol
+        self.kw = dict(control=control, lanes=lanes, driven=driven)
+        self.shot_kw = dict(control=control, lanes=min(lanes, SHOOTING_LANES), driven=driven)
+        self.devices = devices
+        self.one = cell_sharded(_one_period, devices)
+        self.shoot = cell_sharded(shoot_period, devices)
+
+    def iterate(self, loadings, seed, it: _Iterates):
+        """One period of every pending cell of ``it`` (a shot where its Jacobian is not
+        finite yet, at its first iteration), Broyden's update of its Jacobian and the Newton
+        step. Updates ``it`` in place (``converged`` excepted).
+
+        Returns ``(newly, failed)``: the cells that converged in this iteration (stability
+        not checked yet: :meth:`unstable`), and those whose iteration stopped without (a
+        failed period or a non-finite step)."""
+        pending = it.pending
+        y = with_dynamical(seed, jnp.asarray(it.flat))
+        fresh = pending & (it.k == 0) & ~np.isfinite(it.jac).all(axis=(1, 2))
+        r = to_host(self.one(self.actuator, loadings, y, pending & ~fresh, **self.kw))
+        if fresh.any():  # shot first: exact Jacobians
+            rs, js, _ = to_host(self.shoot(self.actuator, loadings, y, fresh, **self.shot_kw))
+            r = _pick(fresh, rs, r)
+            it.jac = np.where(fresh[:, None, None], np.asarray(js), it.jac)
+        flat = it.flat
+        gap = np.asarray(flatten_dynamical(r.final_state)) - flat
+        it.out = r if it.out is None else _pick(pending, r, it.out)
+        it.steps += np.where(pending, np.asarray(r.steps), 0)
+        it.cycles += np.where(pending, np.asarray(r.cycles_run), 0)
+        secant = pending & np.isfinite(it.prev[0]).all(axis=1)
+        if secant.any():  # Broyden's update of J - I from the secant of this iteration
+            dx, dg = flat - it.prev[0], gap - it.prev[1]
+            with np.errstate(invalid="ignore"):
+                miss = dg - np.einsum("nij,nj->ni", it.jac - np.eye(it.jac.shape[-1]), dx)
+                upd = miss[:, :, None] * dx[:, None, :] / np.maximum(
+                    np.einsum("ni,ni->n", dx, dx), 1e-300)[:, None, None]
+            it.jac = np.where(secant[:, None, None], it.jac + upd, it.jac)
+        ok = np.asarray(r.status) == 0
+        step = newton_step(it.jac, gap, pending & ok)
+        size = np.asarray(step_residual(y, step))
+        newly = pending & ok & (size < self.tol)
+        it.pending = pending & ok & ~newly & np.isfinite(step).all(axis=1)
+        it.prev = (flat, gap)
+        it.flat = flat + np.where(it.pending[:, None], step, 0.0)
+        it.k = it.k + pending
+        return newly, pending & ~it.pending & ~newly
+
+    def unstable(self, loadings, seed, it: _Iterates, where):
+        """Which of the converged cells ``where`` are not stable: the updated Jacobian's
+        Floquet radius, checked by one shot (which replaces the Jacobian) where it is above
+        :data:`VERIFY_RADIUS`."""
+        doubt = where.copy()
+        doubt[where] = ~(floquet_radius(it.jac[where]) <= VERIFY_RADIUS)
+        if not doubt.any():
+            return np.zeros_like(where)
+        _, js, _ = to_host(self.shoot(self.actuator, loadings,
+                                      with_dynamical(seed, jnp.asarray(it.flat)), doubt,
+                                      **self.shot_kw))
+        it.jac = np.where(doubt[:, None, None], np.asarray(js), it.jac)
+        bad = doubt.copy()
+        bad[doubt] = ~(floquet_radius(it.jac[doubt]) <= STABLE_MULTIPLIER)
+        return bad
+
+
+def _pick(mask, a, b):
+    """Per cell, ``a``'s leaves where ``mask`` else ``b``'s (host arrays, numpy)."""
+    return jax.tree_util.tree_map(
+        lambda x, y: np.where(mask.reshape(mask.shape + (1,) * (np.ndim(x) - 1)), x, y), a, b)
 
 
 def predict(history: np.ndarray) -> np.ndarray:
@@ -318,6 +395,87 @@ def with_spent(metrics: CycleMetrics, before: CycleMetrics, where=None) -> Cycle
                        (total("steps"), total("cycles_run")))
 
 
+def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
+                  seed: ConeState, history: np.ndarray, jacobian: np.ndarray,
+                  recent: np.ndarray, *, lanes: int, tol: float = 1e-6,
+                  iterations: int = CHORD_ITERATIONS, control: StepControl = StepControl(),
+                  devices: tuple = (), driven=None):
+    """The chain's later stages, every column at its own pace (a generator).
+
+    Column ``i`` (slot ``i``) holds the cells ``slots[i, j]`` of the stages ``j``; its last
+    stage (``j = n_chain - 1``) is solved already. Each call of the one-period program runs
+    one chord iteration (:func:`chord_cells`) of every column that is not done yet, each at
+    its own stage: a column whose iteration converged (and is stable) or failed goes on to
+    its next stage at once, starting from the :func:`predict` of its orbits, with its
+    Jacobian (the one it started the stage with, where the stage failed). So every call is
+    as wide as the columns left, and the number of calls is set by the column with the most
+    iterations over all stages, not by the sum over the stages of each stage's slowest cell.
+    A column's iterations are the same, number for number, as stage by stage.
+
+    **Arguments:**
+
+    - `actuator`, `loadings`: the model and the cells (host arrays, indexed by `slots`).
+    - `slots`: ``(m, n_chain)`` cell indices, ``m`` divisible by the number of `devices`.
+    - `seed`: ``(m,)`` states whose non-dynamical parts every start state takes.
+    - `history`: ``(k, m, d)`` each column's orbits of its last converged stages, newest
+      first (:func:`remember`); updated in place.
+    - `jacobian`: ``(m, d, d)`` each column's one-period Jacobian (NaN: shot first).
+    - `recent`: ``(m,)`` whether the stage just solved converged.
+    - `lanes`, `tol`, `iterations`, `control`, `devices`, `driven`: as for
+      :func:`chord_cells`.
+
+    **Yields:**
+
+    ``(where, cells, metrics, ok)`` each time some columns finish a stage: their slots, the
+    stage's cells, host :class:`CycleMetrics` (status 0 where converged, else 4) and whether
+    they converged.
+    """
+    chord = _Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
+                   lanes, driven)
+    m, n_chain = slots.shape
+    stage = np.full(m, n_chain - 2)
+    it = _Iterates.begin(predict(history), jacobian, stage >= 0)
+    start_jac = it.jac.copy()
+    recent = np.array(recent, bool)
+    held = np.zeros(m, bool)  # converged, waiting for the shot that checks their stability
+    batch = VERIFY_BATCH * len(chord.devices)
+    while it.pending.any() or held.any():
+        ld = take_cells(loadings, slots[np.arange(m), np.maximum(stage, 0)])
+        newly, failed = np.zeros(m, bool), np.zeros(m, bool)
+        if it.pending.any():
+            newly, failed = chord.iterate(ld, seed, it)
+            failed |= it.pending & (it.k >= int(iterations))
+            it.pending &= ~failed
+        doubt = newly.copy()
+        doubt[newly] = ~(floquet_radius(it.jac[newly]) <= VERIFY_RADIUS)
+        held |= doubt
+        newly &= ~doubt
+        if held.any() and (held.sum() >= batch or not it.pending.any()):
+            bad = chord.unstable(ld, seed, it, held)
+            newly, failed = newly | (held & ~bad), failed | (held & bad)
+            held[:] = False
+        it.converged |= newly
+        done = newly | failed
+        if not done.any():
+            continue
+        where = np.nonzero(done)[0]
+        metrics, ok = it.metrics(where), it.converged[where]
+        yield where, slots[where, stage[where]], metrics, ok
+        flat = np.asarray(flatten_dynamical(it.out.final_state))[where]  # one shape: compiled once
+        history[:, where] = remember(history[:, where], flat, ok, recent[where])
+        recent[where] = ok
+        it.jac[where] = np.where(ok[:, None, None], it.jac[where], start_jac[where])
+        stage[where] -= 1
+        go = where[stage[where] >= 0]
+        if go.size:  # the next stage of these columns
+            again = np.zeros(m, bool)
+            again[go] = True
+            guess = it.flat.copy()
+            guess[go] = predict(history[:, go])
+            it.restart(again, guess)
+            start_jac[go] = it.jac[go]
+
+
 def _scatter(results, cells, res):
     """Write the per-slot results ``res`` (host arrays) into ``results`` at ``cells``."""
     jax.tree_util.tree_map(lambda dst, src: dst.__setitem__(cells, np.asarray(src)),
@@ -358,6 +516,7 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     """
     devices = tuple(devices or jax.devices()[:1])
     n_dev = len(devices)
+    loadings = to_host(loadings)  # host arrays: every stage gathers its cells from them
     blocks, n_chain, rest = (int(k) for k in shape)
     n = blocks * n_chain * rest
     idx = np.arange(n).reshape(blocks, n_chain, rest)
@@ -378,32 +537,27 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
                        np.arange(order.size))
     lanes = default_lanes(order.size // n_dev) if order.size else None
     kw = dict(tol=float(tol), control=control, devices=devices, driven=driven)
-    results, seed, history, jac, failed = None, None, None, None, [rest_cells]
-    recent = None  # per column: its orbit converged in the stage just done
-    for j in range(n_chain - 1 if chained.size else -1, -1, -1):
-        cells = columns[:, j][order]
-        ld = take_cells(loadings, cells)
-        if history is None:  # from rest for the first block, continued along the blocks
-            res, jac, ok = first_stage(actuator, ld, block[order], partner, lanes=lanes,
-                                       **kw)
-        else:
-            start = to_host(with_dynamical(seed, jnp.asarray(predict(history))))
-            res, new_jac, ok = chord_cells(actuator, ld, start, jac, lanes=lanes, **kw)
-            jac = np.where(ok[:, None, None], new_jac, jac)
-        if results is None:
-            results = _blank(res, n)
-        _scatter(results, cells[keep], take_cells(res, keep))
-        failed.append(cells[keep][~ok[keep]])
-        # the column's seeds: the last orbit that converged, and the ones before it from
-        # consecutive stages (for the predictor)
+    results, failed = None, [rest_cells]
+    if chained.size:
+        slots = columns[order]  # (slot, stage) -> cell
+        first = n_chain - 1
+        res, jac, ok = first_stage(actuator, take_cells(loadings, slots[:, first]),
+                                   block[order], partner, lanes=lanes, **kw)
+        results = _blank(res, n)
+        _scatter(results, slots[keep, first], take_cells(res, keep))
+        failed.append(slots[keep, first][~ok[keep]])
+        # each column's seeds for the predictor: its orbits of consecutive converged stages
         flat = np.asarray(flatten_dynamical(res.final_state))
-        if history is None:
-            seed = res.final_state
-            history = np.full((PREDICTOR_POINTS,) + flat.shape, np.nan)
-            jac = np.where(ok[:, None, None], jac, np.nan)
-            recent = np.zeros_like(ok)
-        history = remember(history, flat, ok, recent)
-        recent = ok
+        history = remember(np.full((PREDICTOR_POINTS,) + flat.shape, np.nan), flat, ok,
+                           np.zeros_like(ok))
+        jac = np.where(ok[:, None, None], jac, np.nan)
+        is_kept = np.zeros(order.size, bool)
+        is_kept[keep] = True
+        for where, cells, res, ok in chord_columns(actuator, loadings, slots, res.final_state,
+                                                   history, jac, ok, lanes=lanes, **kw):
+            mine = is_kept[where]
+            _scatter(results, cells[mine], take_cells(res, np.nonzero(mine)[0]))
+            failed.append(cells[mine & ~ok])
     failed = np.concatenate(failed)
     # the stage's own shape (its programs are compiled already), or without a chain all cells
     size = order.size or -(-n // n_dev) * n_dev
