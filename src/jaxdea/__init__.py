@@ -7,7 +7,7 @@ wings, see ``docs/architecture.md``). Everything not exported here may change.
 - models: the cone configurations of paper 000 and the viscoelastic and rotary families
 - config: :func:`load_config` -> a validated model (TOML, SI units)
 - engine: the lane engine (:func:`run_protocol`), step control, cycle metrics, status codes,
-  :func:`use_cpu_cores`
+  :func:`use_cpu_cores`, :func:`use_compile_cache`
 - studies: :func:`sweep`, :func:`powermap`, :func:`simulate`, :func:`transient`,
   :func:`rotary_study`
 - calibration: :func:`calibrate` and measured data (:func:`load_data`)
@@ -50,7 +50,7 @@ from .engine.batch import EARLY_EXIT  # noqa: E402
 from .engine.lanes import run_protocol  # noqa: E402
 from .engine.metrics import STATUS, CycleMetrics  # noqa: E402
 from .engine.protocols import Continuation, Paper, Periodic  # noqa: E402
-from .engine.sharding import use_cpu_cores  # noqa: E402
+from .engine.sharding import use_compile_cache, use_cpu_cores  # noqa: E402
 from .engine.step_control import StepControl  # noqa: E402
 
 # studies
@@ -86,7 +86,7 @@ __all__ = [
     "load_config", "load_payload", "model_from_dict",
     # engine
     "EARLY_EXIT", "STATUS", "Continuation", "CycleMetrics", "Paper", "Periodic", "StepControl",
-    "run_protocol", "use_cpu_cores",
+    "run_protocol", "use_compile_cache", "use_cpu_cores",
     # studies
     "OptimiseResult", "amplitude_frequency", "design_map", "displacement", "hysteresis_area",
     "make_loadings", "optimise", "peak_power", "powermap", "rotary_study", "simulate",

@@ -30,10 +30,11 @@ def main(argv: list[str] | None = None) -> int:
     130 when interrupted."""
     args = build_parser().parse_args(argv)
     from jaxdea._checks import JaxdeaError
-    from jaxdea.engine.sharding import use_cpu_cores
+    from jaxdea.engine.sharding import use_compile_cache, use_cpu_cores
 
     if argv is None:  # the command line (not a call from Python, whose JAX may be in use)
         use_cpu_cores()  # one JAX device per core: batched runs shard over all of them
+        use_compile_cache()  # a rerun on the same grid loads its compiled programs
 
     try:
         with warnings.catch_warnings():

@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Callable
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -98,3 +99,60 @@ def use_cpu_cores(n: int | None = None) -> int:
         except RuntimeError:  # a backend has started: too late, keep what it has
             pass
     return len(jax.devices("cpu"))
+
+
+#: Environment variable naming the directory of the CLI's on-disk cache of compiled programs
+#: (:func:`use_compile_cache`); ``off`` (or ``0``, ``none``, empty) turns the cache off.
+COMPILE_CACHE_ENV = "JAXDEA_COMPILE_CACHE"
+#: Programs that compile faster than this (s) are not worth a file: the engine's programs
+#: take 4-7 s each on 2 cores, helpers well under a second.
+COMPILE_CACHE_MIN_SECONDS = 1.0
+
+
+def default_compile_cache() -> Path | None:
+    """The directory :func:`use_compile_cache` uses by default: ``$JAXDEA_COMPILE_CACHE``,
+    else ``$XDG_CACHE_HOME/jaxdea/xla`` (``~/.cache/jaxdea/xla``); None when that variable
+    says ``off``."""
+    text = os.environ.get(COMPILE_CACHE_ENV)
+    if text is not None:
+        return None if text.strip().lower() in ("", "0", "off", "none") else Path(text)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "jaxdea" / "xla"
+
+
+def use_compile_cache(path: str | os.PathLike | None = None) -> Path | None:
+    """Keep XLA's compiled programs on disk, so that the next run with the same program
+    shapes (the same grid, say, with another spring or prestretch: parameter values are
+    arguments, not constants) skips their compile. The CLI calls this at start.
+
+    A cold warm-started map of 125 000 cells spends ~16 s of its ~40 s compiling its three
+    engine programs, and the README's small map ~4 s of ~11; a second run loads them
+    (``bench/NOTES.md``). Results are the same bit for bit: the programs are the same.
+    A directory JAX already uses (set by the caller or ``JAX_COMPILATION_CACHE_DIR``) is
+    kept as it is.
+
+    **Arguments:**
+
+    - `path`: the cache directory (created if missing); default
+      :func:`default_compile_cache`.
+
+    **Returns:**
+
+    The directory in use, or None where the cache is off or the directory cannot be
+    created (the run goes on, compiling as usual).
+    """
+    current = jax.config.jax_compilation_cache_dir
+    if current:
+        return Path(current)
+    where = Path(path) if path is not None else default_compile_cache()
+    if where is None:
+        return None
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        if not os.access(where, os.W_OK):
+            return None
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(where))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", COMPILE_CACHE_MIN_SECONDS)
+    return where
