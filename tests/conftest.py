@@ -1,5 +1,6 @@
 import collections
 import getpass
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -26,6 +27,8 @@ without_eigen_pool()
 _XLA_CACHE = Path(tempfile.gettempdir()) / f"jaxdea-tests-xla-cache-{getpass.getuser()}"
 jax.config.update("jax_compilation_cache_dir", str(_XLA_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+# and a `jaxdea` command started by a test uses the same cache, not the user's home directory
+os.environ.setdefault("JAXDEA_COMPILE_CACHE", str(_XLA_CACHE))
 
 CONFIG_DIR = Path(__file__).parents[1] / "configs"
 
