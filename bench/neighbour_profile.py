@@ -17,7 +17,7 @@ this process (the engine is not changed):
   the batches solved from rest after the chain (cells below ``REST_BELOW`` and cells whose
   chord iteration failed: ``rest_after_chain``);
 - ``chord``: the chord iterations of the first stage's later masses
-  (:func:`~jaxdea.engine.warmstart.chord_cells`) and of the later stages
+  (:func:`~jaxdea.engine.chord.chord_cells`) and of the later stages
   (:func:`~jaxdea.engine.warmstart.chord_columns`), of which ``chord_periods`` is the plain
   one-period engine calls and ``chord_shots`` the true Jacobians of cells that arrived
   without one or whose stability is in doubt; the rest of ``chord`` is host work (Broyden
@@ -45,7 +45,7 @@ import jax
 import numpy as np
 
 import jaxdea
-from jaxdea.engine import warmstart
+from jaxdea.engine import chord, warmstart
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -119,7 +119,7 @@ def main() -> None:
         raise SystemExit(f"--masses must be in 1..50, got {args.masses}")
     n_dev = jaxdea.use_cpu_cores()
     clock = Clock()
-    sharded = warmstart.cell_sharded
+    sharded = chord.cell_sharded
 
     def cell_sharded(fn, devices):
         run = sharded(fn, devices)
@@ -129,7 +129,7 @@ def main() -> None:
             return clock.wrap("chord_shots", run)
         return run
 
-    warmstart.cell_sharded = cell_sharded
+    chord.cell_sharded = cell_sharded
     warmstart.periodic_cells = clock.wrap("rest", warmstart.periodic_cells, _rest_steps)
     warmstart.chord_cells = clock.wrap("chord", warmstart.chord_cells)
     warmstart.chord_columns = clock.wrap_generator("chord", warmstart.chord_columns)

@@ -233,14 +233,9 @@ def test_chord_columns_repeat_the_stage_by_stage_chain_iteration_for_iteration(m
     periods, steps and status, and the same powers to round-off (a cell's lane position
     differs). Three columns (two of them alike, as padding makes them) of six stages."""
     from jaxdea.engine.batch import take_cells
+    from jaxdea.engine.chord import chord_cells
     from jaxdea.engine.periodic import flatten_dynamical, periodic_cells, with_dynamical
-    from jaxdea.engine.warmstart import (
-        PREDICTOR_POINTS,
-        chord_cells,
-        chord_columns,
-        predict,
-        remember,
-    )
+    from jaxdea.engine.warmstart import PREDICTOR_POINTS, chord_columns, predict, remember
     from jaxdea.studies.loadings import make_loadings
 
     damping, freq = np.logspace(-1, 1, 6), np.array([60.0, 160.0, 60.0])

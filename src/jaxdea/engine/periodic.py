@@ -185,7 +185,7 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     bool per cell, solve only these (the others are skipped at no cost; their metrics are
     meaningless). ``with_jacobian``: also return the one-period map's Jacobian ``(n, d, d)``
     at each cell's last Newton iterate (NaN for a cell that settled without shooting), for
-    :func:`jaxdea.engine.warmstart.chord_cells`.
+    :func:`jaxdea.engine.chord.chord_cells`.
     """
     for name, v, lo in (("warmup", warmup, 2), ("newton", newton, 0)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:

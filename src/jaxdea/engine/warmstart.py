@@ -10,14 +10,17 @@ Jacobians, so :func:`neighbour_chain` solves the grid one payload-axis stage at 
    which also hands back each cell's Jacobian, and continued from mass to mass for the
    others (:func:`first_stage`);
 2. every later stage starts from its neighbour's orbit, extrapolated from the last stages'
-   orbits (:func:`predict`), and Jacobian and runs chord iterations (:func:`chord_cells`):
-   ``y <- y - (J - I)^-1 (Phi_T(y) - y)`` with ``J`` kept current by Broyden's rank-one
-   update from each iteration's secant, so that each iteration costs one plain period
-   instead of a shot;
-3. a cell that has not converged after :data:`CHORD_ITERATIONS` iterations, whose period
-   fails, or whose orbit is not stable (:data:`~jaxdea.engine.periodic.STABLE_MULTIPLIER`,
-   checked with a true Jacobian wherever the updated one puts the Floquet radius above
-   :data:`VERIFY_RADIUS`) is solved from rest instead, exactly as ``start="rest"`` would.
+   orbits (:func:`predict`), and Jacobian and runs chord iterations
+   (:mod:`jaxdea.engine.chord`): ``y <- y - (J - I)^-1 (Phi_T(y) - y)`` with ``J`` kept
+   current by Broyden's rank-one update from each iteration's secant, so that each
+   iteration costs one plain period instead of a shot; every column of the grid goes on at
+   its own pace (:func:`chord_columns`);
+3. a cell that has not converged after
+   :data:`~jaxdea.engine.chord.CHORD_ITERATIONS` iterations, whose period fails, or whose
+   orbit is not stable (:data:`~jaxdea.engine.periodic.STABLE_MULTIPLIER`, checked with a
+   true Jacobian wherever the updated one puts the Floquet radius above
+   :data:`~jaxdea.engine.chord.VERIFY_RADIUS`) is solved from rest instead, exactly as
+   ``start="rest"`` would.
 
 What is reported is the orbit continued along the chain: where responses coexist (near a
 jump, lightly damped), it is the branch connected to the heavier loads, which may differ from
@@ -36,27 +39,13 @@ import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
 from .batch import default_lanes, schedule, take_cells
-from .lanes import run_protocol, select_cells
+from .chord import CHORD_ITERATIONS, VERIFY_RADIUS, Chord, Iterates, chord_cells
+from .lanes import select_cells
 from .metrics import CycleMetrics
-from .periodic import (
-    PER_CELL,
-    SHOOTING_LANES,
-    STABLE_MULTIPLIER,
-    flatten_dynamical,
-    floquet_radius,
-    newton_step,
-    periodic_cells,
-    shoot_period,
-    step_residual,
-    with_dynamical,
-)
-from .sharding import cell_sharded, to_host
+from .periodic import flatten_dynamical, floquet_radius, periodic_cells, with_dynamical
+from .sharding import to_host
 from .step_control import StepControl
 
-#: Chord iterations (one period each) before a warm-started cell is solved from rest. On the
-#: DCDEA-LS bench grid (2 masses x 50 dampings x 100 frequencies) a warm-started cell took
-#: 5.2 periods on average; 2 % needed more than 8.
-CHORD_ITERATIONS = 8
 #: Cells below this frequency (Hz) are solved from rest, in batches after the chain: they
 #: settle within about 4 periods from rest anyway, and a period is so long (a 1 Hz DCDEA-LS
 #: period takes ~4300 steps, a 100 Hz one ~150) that one such cell in a chord call keeps all
@@ -65,187 +54,12 @@ CHORD_ITERATIONS = 8
 #: instead of 12 s; about even on that grid, and the chord calls' length no longer depends
 #: on the lowest frequency of the map.
 REST_BELOW = 10.0
-#: Narrower lane pools a chord call's period ends in (:func:`jaxdea.engine.lanes.lane_pools`).
-#: A call lasts as long as its longest period, and after the first iterations only a few
-#: cells of a stage are still pending: in a 128-lane pool each of their steps costs the
-#: full width. One period of an 11-200 Hz stage (2400 cells, 2 devices), after compile:
-#: 20 cells active 47 -> 10.6 ms with a 32-lane tail (16 lanes: 12.5), 200 cells 40.7 ->
-#: 19.7 ms, all 2400 98 -> 66 ms.
-CHORD_TAIL_POOLS = (32,)
 #: Orbits of the last stages a warm start extrapolates from (:func:`predict`; 5: quartic).
 PREDICTOR_POINTS = 5
 #: Cells per device whose stability :func:`chord_columns` checks in one shot call: a
 #: converged cell with a doubtful Floquet radius waits (its column pauses) until this many
 #: have gathered or nothing else is left to iterate.
 VERIFY_BATCH = 32
-#: Floquet radius of the Broyden-updated Jacobian above which a chord-converged orbit's
-#: stability is checked with a true Jacobian (one shot).
-VERIFY_RADIUS = 0.98
-
-
-def _one_period(actuator, loadings, initial, active, *, control, lanes, driven):
-    return run_protocol(actuator, loadings, cycles=1, average=1, initial=initial,
-                        active=active, control=control,
-                        pools=tuple(p for p in (lanes,) + CHORD_TAIL_POOLS if p <= lanes),
-                        driven=driven)
-
-
-def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
-                jacobian: np.ndarray, *, tol: float = 1e-6,
-                iterations: int = CHORD_ITERATIONS, control: StepControl = StepControl(),
-                lanes: int = 128, devices: tuple = (), driven=None, active=None):
-    """Periodic orbits by chord iterations with Broyden-updated Jacobians, from given states.
-
-    **Arguments:**
-
-    - `actuator`, `loadings`: the cells (leading axis), their number divisible by the number
-      of `devices`.
-    - `initial`: start state of every cell (a neighbour's orbit).
-    - `jacobian`: ``(n, d, d)`` one-period Jacobians to start from (a neighbour's); a cell
-      whose Jacobian is not finite gets a true one by one shot first.
-    - `tol`: the Newton step size (scaled, :func:`~jaxdea.engine.periodic.step_residual`)
-      below which a cell has converged, as in ``periodic_cells``.
-    - `iterations`: most chord iterations.
-    - `control`, `lanes`, `devices`, `driven`: as for ``periodic_cells``.
-    - `active`: bool per cell, iterate only these (the others are skipped at no cost and
-      come back not converged); default all.
-
-    **Returns:**
-
-    ``(metrics, jacobian, converged)``: :class:`CycleMetrics` of the last period from each
-    cell's final iterate, the updated Jacobians, and a bool per cell, true where the chord
-    iteration converged to a stable orbit (elsewhere the metrics are meaningless).
-    """
-    chord = _Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
-                   lanes, driven)
-    seed = to_host(initial)
-    n = np.asarray(flatten_dynamical(seed)).shape[0]
-    it = _Iterates.begin(np.asarray(flatten_dynamical(seed)), jacobian,
-                         np.ones(n, bool) if active is None else np.array(active, bool))
-    for _ in range(int(iterations)):
-        newly, _ = chord.iterate(loadings, seed, it)
-        it.converged |= newly
-        if not it.pending.any():
-            break
-    if it.converged.any():
-        it.converged &= ~chord.unstable(loadings, seed, it, it.converged)
-    return it.metrics(), it.jac, it.converged
-
-
-class _Iterates:
-    """The chord iteration's state per cell (host arrays): the iterate ``flat``, the
-    Jacobian ``jac``, the last iterate and its gap (Broyden's secant; NaN before the first),
-    which cells are still ``pending`` and which ``converged``, the iterations done ``k``, the
-    metrics ``out`` of each cell's last period and its ``steps`` and ``cycles`` so far."""
-
-    def __init__(self, flat, jac, pending):
-        n = flat.shape[0]
-        self.flat, self.jac, self.pending = flat, jac, pending
-        self.prev = (np.full_like(flat, np.nan), np.full_like(flat, np.nan))
-        self.converged = np.zeros(n, bool)
-        self.k = np.zeros(n, np.int64)
-        self.out = None
-        self.steps, self.cycles = np.zeros(n, np.int64), np.zeros(n, np.int64)
-
-    @classmethod
-    def begin(cls, flat, jacobian, pending):
-        return cls(np.array(flat, dtype=float), np.array(jacobian, dtype=float),
-                   np.array(pending, bool))
-
-    def restart(self, where, flat):
-        """Start a new chord iteration in the cells ``where`` from ``flat``."""
-        self.flat = np.where(where[:, None], flat, self.flat)
-        self.prev = tuple(np.where(where[:, None], np.nan, a) for a in self.prev)
-        self.pending |= where
-        self.converged &= ~where
-        for name in ("k", "steps", "cycles"):
-            setattr(self, name, np.where(where, 0, getattr(self, name)))
-
-    def metrics(self, where=slice(None)) -> CycleMetrics:
-        """:class:`CycleMetrics` (host) of the cells ``where``: their last period, the
-        steps and periods of the whole iteration, status 0 where converged else 4."""
-        fields = {k: np.asarray(getattr(self.out, k))[where] for k in PER_CELL}
-        fields.update(steps=self.steps[where].astype(fields["steps"].dtype),
-                      cycles_run=self.cycles[where].astype(fields["cycles_run"].dtype),
-                      status=np.where(self.converged[where], 0, 4).astype(
-                          fields["status"].dtype))
-        final = jax.tree_util.tree_map(lambda a: np.asarray(a)[where], self.out.final_state)
-        return CycleMetrics(final_state=final, **fields)
-
-
-class _Chord:
-    """One chord iteration of many cells at a time: the compiled programs and settings."""
-
-    def __init__(self, actuator, devices, tol, control, lanes, driven):
-        self.actuator, self.tol = actuator, tol
-        self.kw = dict(control=control, lanes=lanes, driven=driven)
-        self.shot_kw = dict(control=control, lanes=min(lanes, SHOOTING_LANES), driven=driven)
-        self.devices = devices
-        self.one = cell_sharded(_one_period, devices)
-        self.shoot = cell_sharded(shoot_period, devices)
-
-    def iterate(self, loadings, seed, it: _Iterates):
-        """One period of every pending cell of ``it`` (a shot where its Jacobian is not
-        finite yet, at its first iteration), Broyden's update of its Jacobian and the Newton
-        step. Updates ``it`` in place (``converged`` excepted).
-
-        Returns ``(newly, failed)``: the cells that converged in this iteration (stability
-        not checked yet: :meth:`unstable`), and those whose iteration stopped without (a
-        failed period or a non-finite step)."""
-        pending = it.pending
-        y = with_dynamical(seed, jnp.asarray(it.flat))
-        fresh = pending & (it.k == 0) & ~np.isfinite(it.jac).all(axis=(1, 2))
-        r = to_host(self.one(self.actuator, loadings, y, pending & ~fresh, **self.kw))
-        if fresh.any():  # shot first: exact Jacobians
-            rs, js, _ = to_host(self.shoot(self.actuator, loadings, y, fresh, **self.shot_kw))
-            r = _pick(fresh, rs, r)
-            it.jac = np.where(fresh[:, None, None], np.asarray(js), it.jac)
-        flat = it.flat
-        gap = np.asarray(flatten_dynamical(r.final_state)) - flat
-        it.out = r if it.out is None else _pick(pending, r, it.out)
-        it.steps += np.where(pending, np.asarray(r.steps), 0)
-        it.cycles += np.where(pending, np.asarray(r.cycles_run), 0)
-        secant = pending & np.isfinite(it.prev[0]).all(axis=1)
-        if secant.any():  # Broyden's update of J - I from the secant of this iteration
-            dx, dg = flat - it.prev[0], gap - it.prev[1]
-            with np.errstate(invalid="ignore"):
-                miss = dg - np.einsum("nij,nj->ni", it.jac - np.eye(it.jac.shape[-1]), dx)
-                upd = miss[:, :, None] * dx[:, None, :] / np.maximum(
-                    np.einsum("ni,ni->n", dx, dx), 1e-300)[:, None, None]
-            it.jac = np.where(secant[:, None, None], it.jac + upd, it.jac)
-        ok = np.asarray(r.status) == 0
-        step = newton_step(it.jac, gap, pending & ok)
-        size = np.asarray(step_residual(y, step))
-        newly = pending & ok & (size < self.tol)
-        it.pending = pending & ok & ~newly & np.isfinite(step).all(axis=1)
-        it.prev = (flat, gap)
-        it.flat = flat + np.where(it.pending[:, None], step, 0.0)
-        it.k = it.k + pending
-        return newly, pending & ~it.pending & ~newly
-
-    def unstable(self, loadings, seed, it: _Iterates, where):
-        """Which of the converged cells ``where`` are not stable: the updated Jacobian's
-        Floquet radius, checked by one shot (which replaces the Jacobian) where it is above
-        :data:`VERIFY_RADIUS`."""
-        doubt = where.copy()
-        doubt[where] = ~(floquet_radius(it.jac[where]) <= VERIFY_RADIUS)
-        if not doubt.any():
-            return np.zeros_like(where)
-        _, js, _ = to_host(self.shoot(self.actuator, loadings,
-                                      with_dynamical(seed, jnp.asarray(it.flat)), doubt,
-                                      **self.shot_kw))
-        it.jac = np.where(doubt[:, None, None], np.asarray(js), it.jac)
-        bad = doubt.copy()
-        bad[doubt] = ~(floquet_radius(it.jac[doubt]) <= STABLE_MULTIPLIER)
-        return bad
-
-
-def _pick(mask, a, b):
-    """Per cell, ``a``'s leaves where ``mask`` else ``b``'s (host arrays, numpy)."""
-    return jax.tree_util.tree_map(
-        lambda x, y: np.where(mask.reshape(mask.shape + (1,) * (np.ndim(x) - 1)), x, y), a, b)
-
-
 def predict(history: np.ndarray) -> np.ndarray:
     """The next stage's start (flat dynamical states, ``(n, d)``): per cell, the polynomial
     through its orbits of the last stages, extrapolated one stage on (a map's axes are log-
@@ -323,11 +137,11 @@ def first_stage(actuator: ConeActuator, loadings: Loading, block: np.ndarray,
     The first block is solved from rest (:func:`~jaxdea.engine.periodic.periodic_cells`,
     with the Jacobians of its shots); each later block starts from the orbits and
     Jacobians of the block before it at the same frequency (and phase), with the secant
-    predictor (:func:`predict`), by chord iterations (:func:`chord_cells`). Cells whose
-    chord iteration fails, or that have no converged neighbour to start from, are solved
-    from rest at the end, in one call. Every call runs on the whole stage's slots with only
-    the block's cells active, so all of them share the compiled programs of the stages and
-    batches after it.
+    predictor (:func:`predict`), by chord iterations
+    (:func:`~jaxdea.engine.chord.chord_cells`). Cells whose chord iteration fails, or that
+    have no converged neighbour to start from, are solved from rest at the end, in one call.
+    Every call runs on the whole stage's slots with only the block's cells active, so all
+    of them share the compiled programs of the stages and batches after it.
 
     The first stage is the heaviest load (its orbits are unique and settle fastest), so a
     continued orbit is the from-rest one to the Newton tolerance. Measured:
@@ -404,12 +218,13 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
 
     Column ``i`` (slot ``i``) holds the cells ``slots[i, j]`` of the stages ``j``; its last
     stage (``j = n_chain - 1``) is solved already. Each call of the one-period program runs
-    one chord iteration (:func:`chord_cells`) of every column that is not done yet, each at
-    its own stage: a column whose iteration converged (and is stable) or failed goes on to
-    its next stage at once, starting from the :func:`predict` of its orbits, with its
-    Jacobian (the one it started the stage with, where the stage failed). So every call is
-    as wide as the columns left, and the number of calls is set by the column with the most
-    iterations over all stages, not by the sum over the stages of each stage's slowest cell.
+    one chord iteration (:func:`~jaxdea.engine.chord.chord_cells`) of every column that is
+    not done yet, each at its own stage: a column whose iteration converged (and is
+    stable) or failed goes on to its next stage at once, starting from the :func:`predict`
+    of its orbits, with its Jacobian (the one it started the stage with, where the stage
+    failed). So every call is as wide as the columns left, and the number of calls is set
+    by the column with the most iterations over all stages, not by the sum over the stages
+    of each stage's slowest cell.
     A column's iterations are the same, number for number, as stage by stage.
 
     **Arguments:**
@@ -422,7 +237,7 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
     - `jacobian`: ``(m, d, d)`` each column's one-period Jacobian (NaN: shot first).
     - `recent`: ``(m,)`` whether the stage just solved converged.
     - `lanes`, `tol`, `iterations`, `control`, `devices`, `driven`: as for
-      :func:`chord_cells`.
+      :func:`~jaxdea.engine.chord.chord_cells`.
 
     **Yields:**
 
@@ -430,11 +245,11 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
     stage's cells, host :class:`CycleMetrics` (status 0 where converged, else 4) and whether
     they converged.
     """
-    chord = _Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
+    chord = Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
                    lanes, driven)
     m, n_chain = slots.shape
     stage = np.full(m, n_chain - 2)
-    it = _Iterates.begin(predict(history), jacobian, stage >= 0)
+    it = Iterates.begin(predict(history), jacobian, stage >= 0)
     start_jac = it.jac.copy()
     recent = np.array(recent, bool)
     held = np.zeros(m, bool)  # converged, waiting for the shot that checks their stability
