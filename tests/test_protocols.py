@@ -230,8 +230,9 @@ def test_chord_columns_repeat_the_stage_by_stage_chain_iteration_for_iteration(m
     """The warm-started chain's later stages, every column at its own pace
     (``chord_columns``), do for every cell exactly what the stage-by-stage chain does
     (``chord_cells`` on a whole stage at a time, then ``predict``/``remember``): the same
-    periods, steps and status, and the same powers to round-off (a cell's lane position
-    differs). Three columns (two of them alike, as padding makes them) of six stages."""
+    periods, steps and status, and the same powers within the Newton tolerance (a cell's
+    lane may differ, and so may its rounding). Three columns (two of them alike, as padding
+    makes them) of six stages."""
     from jaxdea.engine.batch import take_cells
     from jaxdea.engine.chord import chord_cells
     from jaxdea.engine.periodic import flatten_dynamical, periodic_cells, with_dynamical
@@ -274,7 +275,9 @@ def test_chord_columns_repeat_the_stage_by_stage_chain_iteration_for_iteration(m
     assert sorted(got) == sorted(expect)
     for cell, ref in expect.items():
         assert got[cell][:3] == ref[:3], (cell, got[cell], ref)
-        np.testing.assert_allclose(got[cell][3], ref[3], rtol=1e-10)
+        # a cell may sit in another lane, and rounding moves the converged orbit within the
+        # Newton tolerance (1e-6 on the state; 1.3e-7 on P_out seen on a 6250-cell map)
+        np.testing.assert_allclose(got[cell][3], ref[3], rtol=1e-6)
     assert all(v[2] == 0 for v in got.values())
     periods = np.mean([v[0] for v in got.values()])  # 4.9 on this coarse grid
     assert 1 <= periods < 6, periods

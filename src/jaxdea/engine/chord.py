@@ -83,11 +83,11 @@ def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
     iteration converged to a stable orbit (elsewhere the metrics are meaningless).
     """
     chord = Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
-                   lanes, driven)
+                  lanes, driven)
     seed = to_host(initial)
     n = np.asarray(flatten_dynamical(seed)).shape[0]
-    it = Iterates.begin(np.asarray(flatten_dynamical(seed)), jacobian,
-                         np.ones(n, bool) if active is None else np.array(active, bool))
+    it = Iterates(np.asarray(flatten_dynamical(seed)), jacobian,
+                  np.ones(n, bool) if active is None else active)
     for _ in range(int(iterations)):
         newly, _ = chord.iterate(loadings, seed, it)
         it.converged |= newly
@@ -104,19 +104,16 @@ class Iterates:
     which cells are still ``pending`` and which ``converged``, the iterations done ``k``, the
     metrics ``out`` of each cell's last period and its ``steps`` and ``cycles`` so far."""
 
-    def __init__(self, flat, jac, pending):
-        n = flat.shape[0]
-        self.flat, self.jac, self.pending = flat, jac, pending
+    def __init__(self, flat, jacobian, pending):
+        n = np.shape(flat)[0]
+        self.flat = np.array(flat, dtype=float)
+        self.jac = np.array(jacobian, dtype=float)
+        self.pending = np.array(pending, bool)
         self.prev = (np.full_like(flat, np.nan), np.full_like(flat, np.nan))
         self.converged = np.zeros(n, bool)
         self.k = np.zeros(n, np.int64)
         self.out = None
         self.steps, self.cycles = np.zeros(n, np.int64), np.zeros(n, np.int64)
-
-    @classmethod
-    def begin(cls, flat, jacobian, pending):
-        return cls(np.array(flat, dtype=float), np.array(jacobian, dtype=float),
-                   np.array(pending, bool))
 
     def restart(self, where, flat):
         """Start a new chord iteration in the cells ``where`` from ``flat``."""

@@ -246,10 +246,10 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
     they converged.
     """
     chord = Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
-                   lanes, driven)
+                  lanes, driven)
     m, n_chain = slots.shape
     stage = np.full(m, n_chain - 2)
-    it = Iterates.begin(predict(history), jacobian, stage >= 0)
+    it = Iterates(predict(history), jacobian, stage >= 0)
     start_jac = it.jac.copy()
     recent = np.array(recent, bool)
     held = np.zeros(m, bool)  # converged, waiting for the shot that checks their stability
