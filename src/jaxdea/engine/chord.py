@@ -85,16 +85,14 @@ def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
     chord = Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
                   lanes, driven)
     seed = to_host(initial)
-    n = np.asarray(flatten_dynamical(seed)).shape[0]
-    it = Iterates(np.asarray(flatten_dynamical(seed)), jacobian,
-                  np.ones(n, bool) if active is None else active)
+    flat = np.asarray(flatten_dynamical(seed))
+    it = Iterates(flat, jacobian, np.ones(flat.shape[0], bool) if active is None else active)
     for _ in range(int(iterations)):
         newly, _ = chord.iterate(loadings, seed, it)
         it.converged |= newly
         if not it.pending.any():
             break
-    if it.converged.any():
-        it.converged &= ~chord.unstable(loadings, seed, it, it.converged)
+    it.converged &= ~chord.unstable(loadings, seed, it, chord.doubtful(it, it.converged))
     return it.metrics(), it.jac, it.converged
 
 
@@ -153,8 +151,8 @@ class Chord:
         step. Updates ``it`` in place (``converged`` excepted).
 
         Returns ``(newly, failed)``: the cells that converged in this iteration (stability
-        not checked yet: :meth:`unstable`), and those whose iteration stopped without (a
-        failed period or a non-finite step)."""
+        not checked yet: :meth:`doubtful`, :meth:`unstable`), and those whose iteration
+        stopped without (a failed period or a non-finite step)."""
         pending = it.pending
         y = with_dynamical(seed, jnp.asarray(it.flat))
         fresh = pending & (it.k == 0) & ~np.isfinite(it.jac).all(axis=(1, 2))
@@ -186,14 +184,19 @@ class Chord:
         it.k = it.k + pending
         return newly, pending & ~it.pending & ~newly
 
-    def unstable(self, loadings, seed, it: Iterates, where):
-        """Which of the converged cells ``where`` are not stable: the updated Jacobian's
-        Floquet radius, checked by one shot (which replaces the Jacobian) where it is above
-        :data:`VERIFY_RADIUS`."""
+    def doubtful(self, it: Iterates, where):
+        """Which of the converged cells ``where`` need a shot to show that they are stable:
+        those whose updated Jacobian puts the Floquet radius above :data:`VERIFY_RADIUS`."""
         doubt = where.copy()
         doubt[where] = ~(floquet_radius(it.jac[where]) <= VERIFY_RADIUS)
+        return doubt
+
+    def unstable(self, loadings, seed, it: Iterates, doubt):
+        """Which of the :meth:`doubtful` cells ``doubt`` are not stable: one shot each, whose
+        true Jacobian replaces the updated one, with a multiplier above
+        :data:`~jaxdea.engine.periodic.STABLE_MULTIPLIER`."""
         if not doubt.any():
-            return np.zeros_like(where)
+            return np.zeros_like(doubt)
         _, js, _ = to_host(self.shoot(self.actuator, loadings,
                                       with_dynamical(seed, jnp.asarray(it.flat)), doubt,
                                       **self.shot_kw))

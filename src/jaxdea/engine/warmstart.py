@@ -39,10 +39,10 @@ import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
 from .batch import default_lanes, schedule, take_cells
-from .chord import CHORD_ITERATIONS, VERIFY_RADIUS, Chord, Iterates, chord_cells
+from .chord import CHORD_ITERATIONS, Chord, Iterates, chord_cells
 from .lanes import select_cells
 from .metrics import CycleMetrics
-from .periodic import flatten_dynamical, floquet_radius, periodic_cells, with_dynamical
+from .periodic import flatten_dynamical, periodic_cells, with_dynamical
 from .sharding import to_host
 from .step_control import StepControl
 
@@ -60,6 +60,8 @@ PREDICTOR_POINTS = 5
 #: converged cell with a doubtful Floquet radius waits (its column pauses) until this many
 #: have gathered or nothing else is left to iterate.
 VERIFY_BATCH = 32
+
+
 def predict(history: np.ndarray) -> np.ndarray:
     """The next stage's start (flat dynamical states, ``(n, d)``): per cell, the polynomial
     through its orbits of the last stages, extrapolated one stage on (a map's axes are log-
@@ -261,8 +263,7 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
             newly, failed = chord.iterate(ld, seed, it)
             failed |= it.pending & (it.k >= int(iterations))
             it.pending &= ~failed
-        doubt = newly.copy()
-        doubt[newly] = ~(floquet_radius(it.jac[newly]) <= VERIFY_RADIUS)
+        doubt = chord.doubtful(it, newly)
         held |= doubt
         newly &= ~doubt
         if held.any() and (held.sum() >= batch or not it.pending.any()):
