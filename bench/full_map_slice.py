@@ -27,7 +27,9 @@ timed run, which that product counts ``every`` times where a real full map compi
 ``full_map_<protocol>_compile_once_s`` = (wall - compile) x every + compile;
 ``<protocol>_diffrax_ratio`` = a plain vmapped ``diffrax.diffeqsolve``'s wall time
 per sampled cell, ``bench/diffrax_baseline.py``, over the protocol's wall time per cell of the
-slice).
+slice; ``<protocol>_ns_per_cell_step`` = the timed run's wall time less its compile over all its
+cells' steps; ``platform`` = the devices' kind: on an accelerator the engine's lane pools are
+as wide as a chunk, :func:`jaxdea.engine.batch.default_lanes`).
 """
 
 from __future__ import annotations
@@ -110,7 +112,7 @@ def run_slice(protocols: list[str], *, every: int = 10, samples: int = 8, quick:
     folder = Path(store) if store else Path(tempfile.mkdtemp(prefix="jaxdea-slice-"))
     folder.mkdir(parents=True, exist_ok=True)
     out: dict[str, str] = {"slice_cells": str(n_pay * n_pay * freq.size), "every": str(every),
-                           "devices": str(n_dev)}
+                           "devices": str(n_dev), "platform": jax.devices()[0].platform}
     clock = CompileClock()
     maps, walls = {}, {}
     try:
@@ -144,6 +146,8 @@ def run_slice(protocols: list[str], *, every: int = 10, samples: int = 8, quick:
             out[f"full_map_{protocol}_compile_once_s"] = (
                 f"{(wall - clock.total) * every + clock.total:.0f}")
             out[f"slice_{protocol}_s"] = f"{wall:.1f}"
+            steps = float(ds.steps.sum())  # every cell's steps, its chord periods included
+            out[f"{protocol}_ns_per_cell_step"] = f"{(wall - clock.total) / steps * 1e9:.0f}"
             out[f"{protocol}_steady_ok"] = str(ok)
             if reused:
                 out[f"{protocol}_chunks_reused"] = str(reused)

@@ -15,12 +15,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.engine.batch import driven_membranes, schedule
+from jaxdea.engine.batch import CPU_LANES, default_lanes, driven_membranes, schedule
 from jaxdea.engine.lanes import lane_pools, run_protocol
+from jaxdea.engine.periodic import SHOOTING_LANES, shooting_lanes
+from jaxdea.engine.sharding import on_accelerator
 from jaxdea.studies.loadings import make_loadings
 
 CONFIG = Path(__file__).parents[1] / "configs" / "dcdea_ls.toml"
@@ -57,6 +60,25 @@ def test_lane_pools():
     assert lane_pools(32) == (32,)
     assert lane_pools(128) == (128, 8)
     assert lane_pools(128, strict=True) == (128, 32, 8)
+
+
+class _Device:
+    """What the pool-width rules read of a JAX device: its platform."""
+
+    def __init__(self, platform: str):
+        self.platform = platform
+
+
+def test_pools_are_as_wide_as_the_batch_on_accelerators_only():
+    cpu, gpu = (_Device("cpu"),) * 2, (_Device("cpu"), _Device("gpu"))
+    assert not on_accelerator(cpu) and on_accelerator(gpu)
+    assert not on_accelerator(tuple(jax.devices("cpu")))
+    # CPU devices: a step's cost grows with the width, pools stay narrow
+    assert default_lanes(5000, cpu) == CPU_LANES and default_lanes(40, cpu) == 40
+    assert shooting_lanes(5000, cpu) == SHOOTING_LANES and shooting_lanes(8, cpu) == 8
+    # accelerators: one pool as wide as the device's slice of the batch
+    assert default_lanes(5000, gpu) == 5000
+    assert shooting_lanes(5000, gpu) == 5000 and shooting_lanes(None, gpu) == SHOOTING_LANES
 
 
 def test_tail_pools_do_not_change_cell_results(model):

@@ -27,12 +27,17 @@ from .protocols import (
     as_keywords,
     check_rest_start,
 )
-from .sharding import cell_sharded
+from .sharding import cell_sharded, on_accelerator
 from .step_control import StepControl, check_control
 
 _run = eqx.filter_jit(run_protocol)
 
 _rest_states = eqx.filter_jit(rest_states)
+
+
+#: Widest lane pool on a CPU device (:func:`default_lanes`): measured on 2 cores,
+#: ``bench/NOTES.md``.
+CPU_LANES = 128
 
 
 def run_from_rest(actuator, loadings, successor, *, cycles, average, control, lanes,
@@ -118,12 +123,13 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     if protocol == "periodic":
         from .periodic import periodic_cells
         return _dealt_run(lambda ld: periodic_cells(
-            model.actuator, ld, tol=tol, control=control, lanes=lanes or default_lanes(local),
+            model.actuator, ld, tol=tol, control=control,
+            lanes=lanes or default_lanes(local, devices),
             devices=devices, driven=driven), loadings, n, devices)
     if protocol == "continuation" and successor is None:
         raise SweepError("protocol='continuation' needs the successor of each cell")
     if protocol == "paper" and initial is None:  # independent cells: schedule them
-        lanes = lanes or default_lanes(local)
+        lanes = lanes or default_lanes(local, devices)
         if len(devices) > 1:
             run = lambda ld: cell_sharded(run_from_rest, devices)(  # noqa: E731
                 model.actuator, ld, jnp.full(local * len(devices), local, jnp.int32),
@@ -135,7 +141,8 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
         return _dealt_run(run, loadings, n, devices)
     if protocol == "paper" or successor is None:
         successor = np.full(n, n)
-    lanes = lanes or default_lanes(chain_heads(successor))  # a chain is busy on one lane
+    # a chain is busy on one lane
+    lanes = lanes or default_lanes(chain_heads(successor), devices)
     return _run_engine(model, loadings, cycles, average, control, lanes, initial, successor,
                        early_exit, driven)
 
@@ -203,12 +210,24 @@ def chain_heads(successor) -> int:
     return int(succ.size - np.unique(succ[succ < succ.size]).size)
 
 
-def default_lanes(n_cells: int) -> int:
-    """Lane-pool size of a batch of ``n_cells`` cells on one device: 128, or all the cells.
+def default_lanes(n_cells: int, devices: tuple = ()) -> int:
+    """Lane-pool size of a batch of ``n_cells`` cells on one device: on CPU devices 128, or
+    all the cells; on accelerators all the cells (:func:`~jaxdea.engine.sharding.on_accelerator`).
 
     Wide pools are cheaper per cell-step (the per-step overhead is shared) but pay off only
     when they stay busy to the end: cells are queued lowest frequency first
     (:func:`schedule`) and the batch ends in smaller pools
     (:func:`jaxdea.engine.lanes.lane_pools`). Measurements: ``bench/NOTES.md``.
+
+    **Arguments:**
+
+    - `n_cells`: the batch's cells on one device.
+    - `devices`: the devices the batch runs on (default: JAX's default devices).
+
+    **Returns:**
+
+    The widest pool's lanes.
     """
-    return int(min(n_cells, 128))
+    if on_accelerator(devices):
+        return int(n_cells)
+    return int(min(n_cells, CPU_LANES))

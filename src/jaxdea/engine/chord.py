@@ -21,12 +21,12 @@ from .lanes import run_protocol
 from .metrics import CycleMetrics
 from .periodic import (
     PER_CELL,
-    SHOOTING_LANES,
     STABLE_MULTIPLIER,
     flatten_dynamical,
     floquet_radius,
     newton_step,
     shoot_period,
+    shooting_lanes,
     step_residual,
     with_dynamical,
 )
@@ -140,7 +140,8 @@ class Chord:
     def __init__(self, actuator, devices, tol, control, lanes, driven):
         self.actuator, self.tol = actuator, tol
         self.kw = dict(control=control, lanes=lanes, driven=driven)
-        self.shot_kw = dict(control=control, lanes=min(lanes, SHOOTING_LANES), driven=driven)
+        self.shot_kw = dict(control=control, lanes=shooting_lanes(lanes, devices),
+                            driven=driven)
         self.devices = devices
         self.one = cell_sharded(_one_period, devices)
         self.shoot = cell_sharded(shoot_period, devices)

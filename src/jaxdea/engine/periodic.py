@@ -35,7 +35,7 @@ import numpy as np
 from ..models.cone import ConeActuator, ConeState, Loading
 from .lanes import run_protocol, select_cells
 from .metrics import DYNAMICAL, CycleMetrics, periodicity_residual
-from .sharding import cell_sharded, to_host
+from .sharding import cell_sharded, on_accelerator, to_host
 from .step_control import StepControl
 
 #: The per-cell metrics of :class:`CycleMetrics` (everything but the final state).
@@ -164,6 +164,15 @@ def floquet_radius(jac: np.ndarray) -> np.ndarray:
 SHOOTING_LANES = 16
 
 
+def shooting_lanes(lanes: int | None, devices: tuple = ()) -> int:
+    """The shooting stage's lane pool: :data:`SHOOTING_LANES` (at most ``lanes``) on CPU
+    devices; on accelerators ``lanes`` itself, where a step costs about the same for any
+    width (:func:`~jaxdea.engine.sharding.on_accelerator`)."""
+    if lanes and on_accelerator(devices):
+        return int(lanes)
+    return min(lanes or SHOOTING_LANES, SHOOTING_LANES)
+
+
 def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e-6,
                    warmup: int = 12, newton: int = 6, control: StepControl = StepControl(),
                    lanes: int | None = None, devices: tuple | None = None,
@@ -218,7 +227,7 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
         if not pending.any():
             break
         r, jac, gap = to_host(shoot(actuator, loadings, y, pending, control=control,
-                                    lanes=min(lanes or SHOOTING_LANES, SHOOTING_LANES),
+                                    lanes=shooting_lanes(lanes, devices),
                                     driven=driven))
         if with_jacobian:
             jacobian = np.where(pending[:, None, None], np.asarray(jac), jacobian)

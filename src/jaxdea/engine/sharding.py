@@ -55,6 +55,27 @@ def _sharded(fn: Callable, devices: tuple) -> Callable:
     return lambda *args, **kwargs: to_host(jitted(*args, **kwargs))
 
 
+def on_accelerator(devices: tuple = ()) -> bool:
+    """Whether ``devices`` (default: JAX's default devices) are accelerators (GPU, TPU), not
+    host CPU devices.
+
+    The lane engine's defaults differ there: a CPU device runs a step's few hundred small
+    kernels one after another on one core, so a step's cost grows with the pool's width and
+    pools stay narrow (:func:`jaxdea.engine.batch.default_lanes`); an accelerator launches
+    the same kernels over all lanes at once, so a step costs about the same for 8 lanes as
+    for 10^5, and the widest pool is the cheapest per cell.
+
+    **Arguments:**
+
+    - `devices`: JAX devices (default: ``jax.devices()``).
+
+    **Returns:**
+
+    True when any of them is not a CPU device.
+    """
+    return any(d.platform != "cpu" for d in (tuple(devices) or jax.devices()))
+
+
 def to_host(tree):
     """The arrays of ``tree`` as numpy arrays on the host (other leaves unchanged).
 

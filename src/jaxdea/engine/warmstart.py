@@ -351,7 +351,7 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     below = np.searchsorted(chained, chained[order] - n_chain * rest)
     partner = np.where(block[order] > 0, slot_of[np.minimum(below, chained.size - 1)],
                        np.arange(order.size))
-    lanes = default_lanes(order.size // n_dev) if order.size else None
+    lanes = default_lanes(order.size // n_dev, devices) if order.size else None
     kw = dict(tol=float(tol), control=control, devices=devices, driven=driven)
     results, failed = None, [rest_cells]
     if chained.size:
@@ -384,7 +384,7 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
         real = np.zeros(size, bool)  # the padding slots are skipped at no cost
         real[np.unique(sub, return_index=True)[1]] = True
         back = to_host(periodic_cells(actuator, take_cells(loadings, sub), active=real,
-                                      lanes=lanes or default_lanes(size // n_dev), **kw))
+                                      lanes=lanes or default_lanes(size // n_dev, devices), **kw))
         results = _blank(back, n) if results is None else results
         back = with_spent(back, take_cells(results, sub))
         _scatter(results, sub[real], take_cells(back, real))

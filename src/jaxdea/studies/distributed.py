@@ -79,7 +79,7 @@ def run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, succ
         res = cell_sharded(run_from_rest, devices)(
             model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
             cycles=cycles, average=average, control=control,
-            lanes=default_lanes(chain_heads(successor)), early_exit=early_exit,
+            lanes=default_lanes(chain_heads(successor), devices), early_exit=early_exit,
             driven=driven_membranes(loadings))
     else:  # paper and periodic: dealt over the devices; continuation on one device
         res = run_cells(model, loadings, cycles=cycles, average=average, control=control,

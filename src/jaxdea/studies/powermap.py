@@ -50,6 +50,7 @@ from ..engine.batch import DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors
 from ..engine.metrics import STATUS
 from ..engine.precision import check_precision
 from ..engine.protocols import STARTS, Protocol, as_keywords
+from ..engine.sharding import on_accelerator
 from ..engine.step_control import StepControl, check_control
 from ..models.cone import Model
 from ..payloads import parameters
@@ -101,6 +102,13 @@ CONTINUATION_CHAINS = 128
 #: f: 0.32 ms per cell with 4 masses per chunk (1992 cells per device per stage), 0.30 ms
 #: with 8, against 2.9 ms from rest.
 NEIGHBOUR_STAGE_PER_DEVICE = 2048
+#: The same two defaults on accelerators (:func:`jaxdea.engine.sharding.on_accelerator`),
+#: where the lane pool is as wide as the chunk's slice of a device
+#: (:func:`jaxdea.engine.batch.default_lanes`): a step costs about the same for any width
+#: there, so a chunk is as large as its memory allows without losing the progress bar and
+#: cheap resumes (the paper-size map: 10 chunks; ~1 KiB of device memory per lane).
+ACCELERATOR_CHUNK_PER_DEVICE = 2**18
+ACCELERATOR_STAGE_PER_DEVICE = 2**15
 _BYTES_PER_CELL = 8 * len(VARIABLES)
 
 
@@ -306,16 +314,19 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
     successor = None
     n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
     chain = None
+    wide = bool(devices) and on_accelerator(devices)
+    per_device = ACCELERATOR_CHUNK_PER_DEVICE if wide else CHUNK_PER_DEVICE
     if protocol == "continuation":  # whole chains (all f of a payload and phase) per device
         unit = n_f * n_rest * n_dev  # one payload's chains on every device
         target = chunk_cells or CONTINUATION_CHAINS * n_f * n_dev
     elif start == "neighbour":  # whole masses: every stage of the chain over axis 1 in a chunk
         chain = (shape[1], n_f * n_rest)
         unit = shape[1] * n_f * n_rest
-        target = chunk_cells or NEIGHBOUR_STAGE_PER_DEVICE * n_dev * shape[1]
+        stage = ACCELERATOR_STAGE_PER_DEVICE if wide else NEIGHBOUR_STAGE_PER_DEVICE
+        target = chunk_cells or stage * n_dev * shape[1]
     else:
         unit = n_dev
-        target = chunk_cells or CHUNK_PER_DEVICE * n_dev
+        target = chunk_cells or per_device * n_dev
     units = -(-n_cells // unit)
     per_chunk = min(-(-int(target) // unit), units)  # units per chunk: no more than the grid
     if chunk_cells is None and client is not None:
