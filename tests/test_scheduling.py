@@ -60,6 +60,9 @@ def test_lane_pools():
     assert lane_pools(32) == (32,)
     assert lane_pools(128) == (128, 8)
     assert lane_pools(128, strict=True) == (128, 32, 8)
+    # an accelerator's pool as wide as its batch shrinks as its cells finish
+    assert lane_pools(250_000) == (250_000, 31_250, 4096, 8)
+    assert lane_pools(5000, strict=True) == (5000, 200, 8)
 
 
 class _Device:

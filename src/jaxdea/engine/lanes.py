@@ -113,6 +113,13 @@ class _Lane(eqx.Module):
 
 #: Smallest lane pool that gets a smaller pool for the end of its batch (:func:`lane_pools`).
 TAIL_FROM = 64
+#: Pools at least twice this wide end in a cascade of pools, each 1/:data:`CASCADE` of the
+#: one before, down to this width (:func:`lane_pools`). Only the accelerators' default pools
+#: are this wide (:func:`jaxdea.engine.batch.default_lanes`): there a step of 10^5 lanes is bound by
+#: memory traffic, so finished lanes cost as much as busy ones, while below a few thousand
+#: lanes a step costs its kernel launches whatever the width.
+CASCADE_FROM = 4096
+CASCADE = 8
 #: Narrowest lane pool. XLA compiles a vmap of width 1 to scalar code that rounds differently
 #: from the vector code of every wider pool, so a cell run alone (a one-cell chunk per
 #: device, a one-frequency sweep) got other last bits than in company, and a chaotic cell a
@@ -127,6 +134,8 @@ def lane_pools(n_lanes: int, strict: bool = False) -> tuple[int, ...]:
     ``n_lanes`` while the queue lasts, then 8 lanes for its last cells. ``strict`` (every
     cell runs all its cycles): a middle pool of ``sqrt(8 n_lanes)`` lanes in between, because
     there the lowest frequencies form a long tail of long cells rather than a few outliers.
+    A pool of at least twice :data:`CASCADE_FROM` lanes (an accelerator's, as wide as the
+    batch) first shrinks by :data:`CASCADE` at a time down to that width, as its cells finish.
     Each pool is one more compiled loop, so pools under :data:`TAIL_FROM` lanes keep one.
     The measurements behind these choices are in ``bench/NOTES.md``.
 
@@ -141,9 +150,13 @@ def lane_pools(n_lanes: int, strict: bool = False) -> tuple[int, ...]:
     """
     if n_lanes < TAIL_FROM:
         return (n_lanes,)
+    wide = [n_lanes]
+    while wide[-1] >= 2 * CASCADE_FROM:
+        wide.append(max(wide[-1] // CASCADE, CASCADE_FROM))
+    n = wide.pop()
     if strict:
-        return (n_lanes, round(math.sqrt(8 * n_lanes)), 8)
-    return (n_lanes, 8)
+        return (*wide, n, round(math.sqrt(8 * n)), 8)
+    return (*wide, n, 8)
 
 
 def rest_states(model, loadings: Loading) -> ConeState:
