@@ -25,6 +25,13 @@ from jaxdea.engine.lanes import lane_pools, run_protocol
 from jaxdea.engine.periodic import SHOOTING_LANES, shooting_lanes
 from jaxdea.engine.sharding import on_accelerator
 from jaxdea.studies.loadings import make_loadings
+from jaxdea.studies.powermap import (
+    ACCELERATOR_CHUNK_PER_DEVICE,
+    ACCELERATOR_STAGE_PER_DEVICE,
+    CHUNK_PER_DEVICE,
+    NEIGHBOUR_STAGE_PER_DEVICE,
+    chunk_target,
+)
 
 CONFIG = Path(__file__).parents[1] / "configs" / "dcdea_ls.toml"
 _run = eqx.filter_jit(run_protocol)
@@ -82,6 +89,18 @@ def test_pools_are_as_wide_as_the_batch_on_accelerators_only():
     # accelerators: one pool as wide as the device's slice of the batch
     assert default_lanes(5000, gpu) == 5000
     assert shooting_lanes(5000, gpu) == 5000 and shooting_lanes(None, gpu) == SHOOTING_LANES
+
+
+def test_chunks_are_larger_on_accelerators():
+    shape, cpu, gpu = (50, 50, 996), (_Device("cpu"),) * 2, (_Device("gpu"),)
+    assert chunk_target("paper", "rest", shape, cpu, None) == (2, 2 * CHUNK_PER_DEVICE, None)
+    assert chunk_target("paper", "rest", shape, gpu, None) == (1, ACCELERATOR_CHUNK_PER_DEVICE,
+                                                               None)
+    assert chunk_target("paper", "rest", shape, gpu, 1000) == (1, 1000, None)
+    # warm starts: whole masses per chunk, the chain along the dampings
+    for devices, stage in ((cpu, NEIGHBOUR_STAGE_PER_DEVICE), (gpu, ACCELERATOR_STAGE_PER_DEVICE)):
+        assert chunk_target("periodic", "neighbour", shape, devices, None) == (
+            50 * 996, stage * len(devices) * 50, (50, 996))
 
 
 def test_tail_pools_do_not_change_cell_results(model):

@@ -185,6 +185,28 @@ def reduce_over_f(ds: xr.Dataset) -> xr.Dataset:
     return ds
 
 
+def chunk_target(protocol: str, start: str, shape: tuple[int, ...], devices: tuple,
+                 chunk_cells: int | None) -> tuple[int, int, tuple[int, int] | None]:
+    """How a map of ``shape`` is cut into chunks on ``devices`` (empty: a cluster's workers).
+
+    Returns ``(unit, target, chain)``: chunks hold whole ``unit`` s of cells (a payload's
+    frequency chains on every device for continuation, whole masses for warm starts, one
+    cell per device otherwise), about ``target`` cells each (``chunk_cells``, else the
+    defaults above, larger on accelerators), and ``chain`` is the warm-start chain's
+    ``(stages, cells per stage and mass)`` (None without warm starts)."""
+    n_dev = max(len(devices), 1)
+    n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
+    wide = bool(devices) and on_accelerator(devices)
+    if protocol == "continuation":  # whole chains (all f of a payload and phase) per device
+        return n_f * n_rest * n_dev, chunk_cells or CONTINUATION_CHAINS * n_f * n_dev, None
+    if start == "neighbour":  # whole masses: every stage of the chain over axis 1 in a chunk
+        stage = ACCELERATOR_STAGE_PER_DEVICE if wide else NEIGHBOUR_STAGE_PER_DEVICE
+        return (shape[1] * n_f * n_rest, chunk_cells or stage * n_dev * shape[1],
+                (shape[1], n_f * n_rest))
+    per_device = ACCELERATOR_CHUNK_PER_DEVICE if wide else CHUNK_PER_DEVICE
+    return n_dev, chunk_cells or per_device * n_dev, None
+
+
 def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None,
              drive: str = "A",
              protocol: str | Protocol = "paper", cycles: int = 100, average: int = 5,
@@ -309,24 +331,10 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
 
     # ---- chunking -----------------------------------------------------------------------
     devices = tuple(jax.devices()) if client is None else ()  # cluster: one per worker
-    n_dev = max(len(devices), 1)
     n_cells = math.prod(shape)
     successor = None
     n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
-    chain = None
-    wide = bool(devices) and on_accelerator(devices)
-    per_device = ACCELERATOR_CHUNK_PER_DEVICE if wide else CHUNK_PER_DEVICE
-    if protocol == "continuation":  # whole chains (all f of a payload and phase) per device
-        unit = n_f * n_rest * n_dev  # one payload's chains on every device
-        target = chunk_cells or CONTINUATION_CHAINS * n_f * n_dev
-    elif start == "neighbour":  # whole masses: every stage of the chain over axis 1 in a chunk
-        chain = (shape[1], n_f * n_rest)
-        unit = shape[1] * n_f * n_rest
-        stage = ACCELERATOR_STAGE_PER_DEVICE if wide else NEIGHBOUR_STAGE_PER_DEVICE
-        target = chunk_cells or stage * n_dev * shape[1]
-    else:
-        unit = n_dev
-        target = chunk_cells or per_device * n_dev
+    unit, target, chain = chunk_target(protocol, start, shape, devices, chunk_cells)
     units = -(-n_cells // unit)
     per_chunk = min(-(-int(target) // unit), units)  # units per chunk: no more than the grid
     if chunk_cells is None and client is not None:
