@@ -13,7 +13,6 @@ shot and kept only if no multiplier is above
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
@@ -155,7 +154,7 @@ class Chord:
         not checked yet: :meth:`doubtful`, :meth:`unstable`), and those whose iteration
         stopped without (a failed period or a non-finite step)."""
         pending = it.pending
-        y = with_dynamical(seed, jnp.asarray(it.flat))
+        y = with_dynamical(seed, it.flat)
         fresh = pending & (it.k == 0) & ~np.isfinite(it.jac).all(axis=(1, 2))
         r = to_host(self.one(self.actuator, loadings, y, pending & ~fresh, **self.kw))
         if fresh.any():  # shot first: exact Jacobians
@@ -199,7 +198,7 @@ class Chord:
         if not doubt.any():
             return np.zeros_like(doubt)
         _, js, _ = to_host(self.shoot(self.actuator, loadings,
-                                      with_dynamical(seed, jnp.asarray(it.flat)), doubt,
+                                      with_dynamical(seed, it.flat), doubt,
                                       **self.shot_kw))
         it.jac = np.where(doubt[:, None, None], np.asarray(js), it.jac)
         bad = doubt.copy()

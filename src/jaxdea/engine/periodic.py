@@ -43,14 +43,17 @@ PER_CELL = tuple(f.name for f in dataclasses.fields(CycleMetrics) if f.name != "
 
 
 def flatten_dynamical(y: ConeState) -> jax.Array:
-    """The dynamical states of ``y`` as one vector per cell: ``(..., d)``."""
+    """The dynamical states of ``y`` as one vector per cell: ``(..., d)`` (a numpy array
+    where ``y``'s are: the host-side Newton and chord bookkeeping dispatches nothing)."""
     lead = y.q.shape[:-1]
-    return jnp.concatenate([getattr(y, k).reshape(lead + (-1,)) for k in DYNAMICAL], axis=-1)
+    leaves = [getattr(y, k).reshape(lead + (-1,)) for k in DYNAMICAL]
+    xp = np if all(isinstance(a, np.ndarray) for a in leaves) else jnp
+    return xp.concatenate(leaves, axis=-1)
 
 
 def with_dynamical(y: ConeState, flat: jax.Array) -> ConeState:
     """``y`` with its dynamical states replaced by the vectors ``flat`` (inverse of
-    :func:`flatten_dynamical`)."""
+    :func:`flatten_dynamical`; numpy ``flat`` gives numpy leaves)."""
     out, at = [], 0
     for k in DYNAMICAL:
         leaf = getattr(y, k)

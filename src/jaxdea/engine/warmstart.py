@@ -34,7 +34,6 @@ import math
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
@@ -178,8 +177,7 @@ def first_stage(actuator: ConeActuator, loadings: Loading, block: np.ndarray,
         guess = predict(behind)
         go = mine & np.isfinite(guess).all(axis=1)
         tried |= go
-        start = to_host(with_dynamical(res.final_state, jnp.asarray(
-            np.where(go[:, None], guess, 0.0))))
+        start = with_dynamical(res.final_state, np.where(go[:, None], guess, 0.0))
         r, new_jac, conv = chord_cells(actuator, loadings, start, jac[partner], lanes=lanes,
                                        active=go, **kw)
         res = to_host(select_cells(go, r, res))
@@ -277,7 +275,7 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
         where = np.nonzero(done)[0]
         metrics, ok = it.metrics(where), it.converged[where]
         yield where, slots[where, stage[where]], metrics, ok
-        flat = np.asarray(flatten_dynamical(it.out.final_state))[where]  # one shape: compiled once
+        flat = flatten_dynamical(it.out.final_state)[where]
         history[:, where] = remember(history[:, where], flat, ok, recent[where])
         recent[where] = ok
         it.jac[where] = np.where(ok[:, None, None], it.jac[where], start_jac[where])
