@@ -16,7 +16,7 @@ from pathlib import Path
 import equinox as eqx
 import jax
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 
 def cell_sharded(fn: Callable, devices: tuple) -> Callable:
@@ -53,6 +53,28 @@ def _sharded(fn: Callable, devices: tuple) -> Callable:
 
     jitted = eqx.filter_jit(run)
     return lambda *args, **kwargs: to_host(jitted(*args, **kwargs))
+
+
+def replicated(tree, devices: tuple):
+    """``tree`` with its arrays copied once onto every one of ``devices`` (as
+    :func:`cell_sharded` runs take a model): a model passed to many sharded calls, e.g. by
+    the warm-start chain's hundreds of one-period calls, is then not copied to the devices
+    on every call. Unchanged on one device.
+
+    **Arguments:**
+
+    - `tree`: a pytree (e.g. a model); its non-array leaves are kept as they are.
+    - `devices`: the devices of the sharded calls it will be passed to.
+
+    **Returns:**
+
+    The same pytree, its arrays replicated over ``devices``.
+    """
+    if len(devices) < 2:
+        return tree
+    where = NamedSharding(Mesh(np.array(devices), ("cells",)), PartitionSpec())
+    dyn, const = eqx.partition(tree, eqx.is_array)
+    return eqx.combine(jax.device_put(dyn, where), const)
 
 
 def on_accelerator(devices: tuple = ()) -> bool:

@@ -42,7 +42,7 @@ from .chord import CHORD_ITERATIONS, Chord, Iterates, chord_cells
 from .lanes import select_cells
 from .metrics import CycleMetrics
 from .periodic import flatten_dynamical, periodic_cells, with_dynamical
-from .sharding import to_host
+from .sharding import replicated, to_host
 from .step_control import StepControl
 
 #: Cells below this frequency (Hz) are solved from rest, in batches after the chain: they
@@ -331,6 +331,7 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     devices = tuple(devices or jax.devices()[:1])
     n_dev = len(devices)
     loadings = to_host(loadings)  # host arrays: every stage gathers its cells from them
+    actuator = replicated(actuator, devices)  # on every device once, not once per call
     blocks, n_chain, rest = (int(k) for k in shape)
     n = blocks * n_chain * rest
     idx = np.arange(n).reshape(blocks, n_chain, rest)
