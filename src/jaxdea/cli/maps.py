@@ -100,7 +100,8 @@ def _powermap(args) -> int:
           + (f"{args.direction} continuation, " if args.protocol == "continuation" else "")
           + ("warm starts from the neighbouring payload, " if args.start == "neighbour"
              else "")
-          + (f"{len(jax.devices())} device(s)" if args.workers is None and args.scheduler is None
+          + (f"{len(jax.devices())} {jax.devices()[0].platform.upper()} device(s)"
+             if args.workers is None and args.scheduler is None
              else f"Dask cluster {args.scheduler or f'of {args.workers} local worker(s)'}"),
           flush=True)
     try:
