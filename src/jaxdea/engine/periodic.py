@@ -169,8 +169,8 @@ SHOOTING_LANES = 16
 
 def shooting_lanes(lanes: int | None, devices: tuple = ()) -> int:
     """The shooting stage's lane pool: :data:`SHOOTING_LANES` (at most ``lanes``) on CPU
-    devices; on accelerators ``lanes`` itself, where a step costs about the same for any
-    width (:func:`~jaxdea.engine.sharding.on_accelerator`)."""
+    devices; on accelerators ``lanes`` itself, where a narrow pool's step costs as much as a
+    wide one's (:func:`~jaxdea.engine.sharding.on_accelerator`)."""
     if lanes and on_accelerator(devices):
         return int(lanes)
     return min(lanes or SHOOTING_LANES, SHOOTING_LANES)

@@ -84,8 +84,10 @@ def on_accelerator(devices: tuple = ()) -> bool:
     The lane engine's defaults differ there: a CPU device runs a step's few hundred small
     kernels one after another on one core, so a step's cost grows with the pool's width and
     pools stay narrow (:func:`jaxdea.engine.batch.default_lanes`); an accelerator launches
-    the same kernels over all lanes at once, so a step costs about the same for 8 lanes as
-    for 10^5, and the widest pool is the cheapest per cell.
+    the same kernels over all lanes at once, so up to a few thousand lanes a step costs its
+    launches whatever the width, and the widest pool is the cheapest per cell (beyond that a
+    step is bound by memory traffic, so very wide pools shrink as their cells finish:
+    :data:`jaxdea.engine.lanes.CASCADE_FROM`).
 
     **Arguments:**
 

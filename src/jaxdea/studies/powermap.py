@@ -104,10 +104,10 @@ CONTINUATION_CHAINS = 128
 NEIGHBOUR_STAGE_PER_DEVICE = 2048
 #: The same two defaults on accelerators (:func:`jaxdea.engine.sharding.on_accelerator`),
 #: where the lane pool is as wide as the chunk's slice of a device
-#: (:func:`jaxdea.engine.batch.default_lanes`): a step costs about the same for any width
-#: there, so a chunk is as large as its memory allows without losing the progress bar and
-#: cheap resumes (the paper-size map: 10 chunks; a lane holds ~1 KiB, estimated: three
-#: 112-byte DCDEA-LS states, its loading and the step's stages).
+#: (:func:`jaxdea.engine.batch.default_lanes`, shrinking as its cells finish): a narrow
+#: pool's step costs as much as a wide one's there, so a chunk is large, short of losing the
+#: progress bar and cheap resumes (the paper-size map: 10 chunks; a lane holds ~1 KiB,
+#: estimated: three 112-byte DCDEA-LS states, its loading and the step's stages).
 ACCELERATOR_CHUNK_PER_DEVICE = 2**18
 ACCELERATOR_STAGE_PER_DEVICE = 2**15
 _BYTES_PER_CELL = 8 * len(VARIABLES)
