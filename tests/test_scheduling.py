@@ -103,6 +103,25 @@ def test_chunks_are_larger_on_accelerators():
             50 * 996, stage * len(devices) * 50, (50, 996))
 
 
+def test_the_accelerator_defaults_give_the_cpu_results(model, monkeypatch):
+    # a GPU user's map runs the same physics in other pools (one as wide as the chunk's
+    # slice of a device, shrinking as its cells finish, the shots as wide): run those
+    # defaults here on the CPU devices, with the cascade scaled down to this small map
+    kw = dict(mass=[1e-3, 2e-3, 4e-3], damping=np.geomspace(0.3, 3.0, 5),
+              freq=np.linspace(100.0, 200.0, 20), progress=False)
+    ref = jaxdea.powermap(model, **kw)  # 300 cells: 128-lane pools on CPU devices
+    with monkeypatch.context() as mp:
+        for mod in (jaxdea.engine.batch, jaxdea.engine.periodic, jaxdea.studies.powermap):
+            mp.setattr(mod, "on_accelerator", lambda devices=(): True)
+        mp.setattr(jaxdea.engine.lanes, "CASCADE_FROM", 16)
+        assert default_lanes(150, tuple(jax.devices())) == 150  # the patches are in effect
+        assert lane_pools(150) == (150, 18, 8)
+        wide = jaxdea.powermap(model, **kw)
+    assert (wide.status.values == 0).all() and (ref.status.values == 0).all()
+    for k in ("P_out", "P_in", "amplitude"):
+        np.testing.assert_allclose(wide[k].values, ref[k].values, rtol=1e-9, err_msg=k)
+
+
 def test_tail_pools_do_not_change_cell_results(model):
     # mixed frequencies and dampings: cells finish at different rounds, so the narrower
     # pools take over running cells part-way through
