@@ -105,8 +105,8 @@ def test_chunks_are_larger_on_accelerators():
 
 def test_the_accelerator_defaults_give_the_cpu_results(model, monkeypatch):
     # a GPU user's map runs the same physics in other pools (one as wide as the chunk's
-    # slice of a device, shrinking as its cells finish, the shots as wide): run those
-    # defaults here on the CPU devices, with the cascade scaled down to this small map
+    # slice of a device, shrinking as its cells finish): run those defaults here on the CPU
+    # devices, with the cascade scaled down to this small map
     kw = dict(mass=[1e-3, 2e-3, 4e-3], damping=np.geomspace(0.3, 3.0, 5),
               freq=np.linspace(100.0, 200.0, 20), progress=False)
     ref = jaxdea.powermap(model, **kw)  # 300 cells: 128-lane pools on CPU devices
