@@ -35,9 +35,15 @@ def cell_sharded(fn: Callable, devices: tuple) -> Callable:
 
 
 @functools.cache
+def _cell_mesh(devices: tuple) -> Mesh:
+    """The one-axis mesh ("cells") of ``devices`` that sharded runs split their cells over."""
+    return Mesh(np.array(devices), ("cells",))
+
+
+@functools.cache
 def _sharded(fn: Callable, devices: tuple) -> Callable:
     """The jitted ``shard_map`` of ``fn`` over ``devices``, built once per pair."""
-    mesh = Mesh(np.array(devices), ("cells",))
+    mesh = _cell_mesh(devices)
 
     def run(model, *cells, **static):
         dyn, const = eqx.partition(model, eqx.is_array)
@@ -72,7 +78,7 @@ def replicated(tree, devices: tuple):
     """
     if len(devices) < 2:
         return tree
-    where = NamedSharding(Mesh(np.array(devices), ("cells",)), PartitionSpec())
+    where = NamedSharding(_cell_mesh(tuple(devices)), PartitionSpec())
     dyn, const = eqx.partition(tree, eqx.is_array)
     return eqx.combine(jax.device_put(dyn, where), const)
 
