@@ -3,7 +3,7 @@
 The public API, grouped by wing (lowest first; a wing imports only from its own or lower
 wings, see ``docs/architecture.md``). Everything not exported here may change.
 
-- leaves: constitutive laws, the cone membrane, drive signals, payloads, the Lawson RK4 solver
+- leaves: constitutive laws, the cone membrane, drive signals, payloads, the exponential RK4 solvers
 - models: the cone configurations of paper 000 and the viscoelastic and rotary families
 - config: :func:`load_config` -> a validated model (TOML, SI units)
 - engine: the lane engine (:func:`run_protocol`), step control, cycle metrics, status codes,
@@ -34,7 +34,7 @@ from .membrane import ConeMembrane  # noqa: E402
 from . import payloads  # noqa: E402
 from .payloads import Combined, Drag, Elastic, Gravity, LinearViscous, PayloadLaw  # noqa: E402
 from .signals import MultiSine, Sine, SquareWave, TriangularPattern, voltage_pattern  # noqa: E402
-from .solver import LawsonRK4, SemilinearTerm  # noqa: E402
+from .solver import ExponentialRK4, LawsonRK4, SemilinearTerm  # noqa: E402
 
 # models
 from .models import DCDEA_LS, DCDEA_RR, SCDEA_LS, ConeActuator, ConeState, Loading, Model  # noqa
@@ -74,7 +74,8 @@ __all__ = [
     # errors
     "CalibrationError", "ConfigError", "DataError", "FieldWarning", "JaxdeaError", "SweepError",
     # leaves
-    "Combined", "ConeMembrane", "Drag", "Elastic", "GentKelvinChain", "GentMaxwell",
+    "Combined", "ConeMembrane", "Drag", "Elastic", "ExponentialRK4", "GentKelvinChain",
+    "GentMaxwell",
     "GentSpringDashpot", "Gravity", "LawsonRK4", "LinearViscous", "MultiSine", "PayloadLaw",
     "SemilinearTerm", "Sine", "SquareWave", "TriangularPattern",
     "payloads", "voltage_pattern",

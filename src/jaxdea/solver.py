@@ -1,4 +1,8 @@
-"""An exponential (Lawson) Runge-Kutta solver for semilinear stiff systems, as a diffrax solver.
+"""Exponential Runge-Kutta solvers for semilinear stiff systems, as diffrax solvers.
+
+:class:`ExponentialRK4` (Krogstad's ETDRK4, what the engine, trajectories and calibration
+use) and :class:`LawsonRK4` (integrating factor, the first release's solver, kept for
+comparison and for linearisations without :meth:`Linearisation.phi_k`).
 
 Why: the RC charge equation of a DEA, ``dQ/dt = (Phi_in - Q/C(d)) / (2 R_s)``, relaxes in
 ``2 R_s C`` ~ 49 us, while the mechanics moves on the millisecond scale. Explicit RK4 is
@@ -14,9 +18,10 @@ frozen over the step::
 (:class:`Linearisation`: ``y*`` is the fixed point of the frozen affine part, ``A`` its
 matrix, ``exp(hA)`` its flow). The remainder ``N`` is non-stiff (for the cone: the change of
 ``C`` with the deflection within one step), and is handled by classical RK4 in the
-integrating-factor (Lawson) form. Constant forcing is integrated exactly because it sits in
-``y*``: a resting, charged capacitor is a fixed point of the step (no drift of the steady
-voltage, unlike plain Lawson with the source in ``N``).
+integrating-factor (Lawson) form by :class:`LawsonRK4`, and against the exact kernel
+``exp((h - s) A)`` by :class:`ExponentialRK4`. Constant forcing is integrated exactly
+because it sits in ``y*``: a resting, charged capacitor is a fixed point of the step (no
+drift of the steady voltage, unlike plain Lawson with the source in ``N``).
 
 Piecewise-constant drives: the vector field is sampled strictly inside each step (the stage
 times 0 and h are nudged inwards by 1e-9 h) and the linearisation at the step midpoint, so a
@@ -27,6 +32,7 @@ boundaries (``diffrax.StepTo``; :mod:`jaxdea.protocol` clips its adaptive steps 
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Callable
 from typing import ClassVar
 
@@ -54,6 +60,13 @@ class Linearisation(eqx.Module):
     @abc.abstractmethod
     def flow(self, h, z: PyTree) -> PyTree:
         """``exp(h A) z``."""
+
+    def phi_k(self, k: int, h, z: PyTree) -> PyTree:
+        """``phi_k(h A) z`` (:func:`phi_functions`; ``phi_0 = exp``, :meth:`flow`), which
+        :class:`ExponentialRK4` needs. A linearisation that only serves :class:`LawsonRK4`
+        need not implement it."""
+        raise NotImplementedError(f"{type(self).__name__} has no phi_k(k, h, z): "
+                                  "ExponentialRK4 needs it (use LawsonRK4)")
 
 
 class SemilinearTerm(diffrax.AbstractTerm):
@@ -146,6 +159,102 @@ class LawsonRK4(diffrax.AbstractSolver):
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
+
+
+class ExponentialRK4(LawsonRK4):
+    """Krogstad's exponential Runge-Kutta method of order 4 (ETDRK4-K), with the same affine
+    shift, stage times and embedded error estimate as :class:`LawsonRK4`. Needs a
+    :class:`SemilinearTerm` whose linearisation has :meth:`Linearisation.phi_k`.
+
+    Why: the Lawson form propagates the remainder ``N`` by ``exp(hA)`` as if it were
+    constant along the exact flow, so its error carries powers of ``A`` (the RC rate
+    ``kappa`` ~ 2e4 /s) and is not seen by the embedded estimate. Measured on DCDEA-LS in the
+    on-phase at 43 Hz (steps of 50 / 100 us against a 1000-substep solution, scaled as in
+    the step control): the charge's true local error 4.0 / 89 where LawsonRK4's estimate
+    says 0.16 / 3.2; this method's 0.05 / 1.2 against its estimate 0.11 / 1.7. Here the
+    remainder is integrated against the exact kernel, ``int exp((h - s) A) N(s) ds``, with
+    ``N`` interpolated through the stages (the ``phi_k`` functions), so the stiff mode costs
+    no accuracy (Krogstad, J. Comput. Phys. 203 (2005) 72-88, the scheme of its section 3;
+    Hochbruck & Ostermann, Acta Numerica 19 (2010) 209-286, section 2.3). With ``A = 0`` it
+    is classical RK4.
+
+    Stages (``z = y - y*``, ``N_i = N(t_i, Z_i)``, ``phi_k = phi_k(hA)``,
+    ``psi_k = phi_k(hA/2)``)::
+
+        Z2 = psi_0 z0 + h/2 psi_1 N1
+        Z3 = Z2 + h psi_2 (N2 - N1)
+        Z4 = phi_0 z0 + h phi_1 N1 + 2 h phi_2 (N3 - N1)
+        z1 = phi_0 z0 + h [(phi_1 - 3 phi_2 + 4 phi_3) N1
+                           + (2 phi_2 - 4 phi_3) (N2 + N3) + (4 phi_3 - phi_2) N4]
+
+    Error estimate: ``N5 = N(t1-, z1)`` in place of ``N4`` gives the embedded solution, so
+    the error is ``h (4 phi_3 - phi_2) (N4 - N5)`` (``h/6 (N4 - N5)`` at ``A = 0``).
+    """
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        del solver_state, made_jump
+        h = t1 - t0
+        ta = t0 + _NUDGE * h
+        tm = t0 + 0.5 * h
+        tb = t1 - _NUDGE * h
+        lin = _unwrap(terms).linearisation(tm, y0, args)
+        ystar = lin.fixed_point
+
+        def remainder(t, z):
+            return _sub(terms.vf(t, _add(ystar, z), args), lin.apply(z))
+
+        def combine(*pairs):  # sum over (k, v) of phi_k(hA) v
+            return _add(*(lin.phi_k(k, h, v) for k, v in pairs))
+
+        def half(k, v):
+            return lin.phi_k(k, 0.5 * h, v)
+
+        z0 = _sub(y0, ystar)
+        n1 = remainder(ta, z0)
+        z2 = _axpy(0.5 * h, half(1, n1), half(0, z0))
+        n2 = remainder(tm, z2)
+        z3 = _axpy(h, half(2, _sub(n2, n1)), z2)
+        n3 = remainder(tm, z3)
+        e0 = lin.flow(h, z0)
+        z4 = _axpy(h, combine((1, n1), (2, _scale(2.0, _sub(n3, n1)))), e0)
+        n4 = remainder(tb, z4)
+        n23 = _add(n2, n3)
+        # phi_1 - 3 phi_2 + 4 phi_3 on N1; 2 phi_2 - 4 phi_3 on N2 + N3; 4 phi_3 - phi_2 on N4
+        incr = combine((1, n1), (2, _add(_scale(-3.0, n1), _scale(2.0, n23), _scale(-1.0, n4))),
+                       (3, _scale(4.0, _add(_sub(n1, n23), n4))))
+        z1 = _axpy(h, incr, e0)
+        y1 = _add(ystar, z1)
+        n5 = remainder(tb, z1)
+        d45 = _sub(n4, n5)
+        y_error = combine((2, _scale(-h, d45)), (3, _scale(4.0 * h, d45)))
+        dense_info = dict(y0=y0, y1=y1)
+        return y1, y_error, dense_info, None, diffrax.RESULTS.successful
+
+
+def phi_functions(a, kmax: int = 3):
+    """``(phi_0(a), ..., phi_kmax(a))`` elementwise for real ``a <= 0``: ``phi_0 = exp``,
+    ``phi_{k+1}(a) = (phi_k(a) - 1/k!) / a``, ``phi_k(0) = 1/k!``.
+
+    The recurrence from ``phi_1 = expm1(a)/a`` loses about a factor ``1/|a|`` per level, so
+    below ``|a| = 0.1`` the Taylor series ``sum_j a^j / (j + k)!`` (10 terms, to ~3e-16) is
+    used instead. Computed in ``a``'s dtype (pass float64 for single-precision states).
+    """
+    small = jnp.abs(a) < 0.1
+    safe = jnp.where(small, -1.0, a)
+    out = [jnp.exp(a)]
+    rec = jnp.expm1(safe) / safe
+    for k in range(1, kmax + 1):
+        if k > 1:
+            rec = (rec - 1.0 / math.factorial(k - 1)) / safe
+        series = 0.0
+        for j in reversed(range(10)):  # Horner
+            series = series * a + 1.0 / math.factorial(j + k)
+        out.append(jnp.where(small, series, rec))
+    return tuple(out)
+
+
+def _scale(c, x):
+    return jtu.tree_map(lambda a: jnp.asarray(c, a.dtype) * a, x)
 
 
 def exp_decay_weights(rate, h):

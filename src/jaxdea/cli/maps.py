@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 
+from jaxdea.engine.step_control import StepControl
 from jaxdea.studies.loadings import check_cone_model
 
 from .args import (
@@ -237,7 +238,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--phase", type=float, default=0.0, help="phase of B vs A, rad [0, 2 pi)")
     s.add_argument("--cycles", type=int, default=100, help="drive periods per frequency")
     s.add_argument("--average", type=int, default=5, help="last periods averaged")
-    s.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
+    s.add_argument("--rtol", type=float, default=StepControl().rtol,
+                   help="solver relative tolerance")
     protocol_args(s)
     s.add_argument("--out", required=True, help="output NetCDF file (.nc)")
     s.add_argument("--plot", help="optional PNG: amplitude and P_out against f (Fig 6 style)")
@@ -257,7 +259,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--drive", default="A", choices=["A", "B", "both"], help=DRIVE_HELP)
     m.add_argument("--cycles", type=int, default=100, help="drive periods per cell")
     m.add_argument("--average", type=int, default=5, help="last periods averaged")
-    m.add_argument("--rtol", type=float, default=1e-6, help="solver relative tolerance")
+    m.add_argument("--rtol", type=float, default=StepControl().rtol,
+                   help="solver relative tolerance")
     protocol_args(m)
     m.add_argument("--start", default="rest", choices=["rest", "neighbour"],
                    help="periodic: every cell from rest, or from its neighbouring payload's "

@@ -9,6 +9,7 @@ Everything else — membrane law, RC charging, energy bookkeeping — is written
 from __future__ import annotations
 
 import abc
+import math
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -20,7 +21,7 @@ from ..electrical import charge_rate
 from ..membrane import BREAKDOWN_FIELD, ConeMembrane
 from ..payloads import PayloadLaw
 from ..signals import SquareWave
-from ..solver import Linearisation, exp_decay_weights
+from ..solver import Linearisation, exp_decay_weights, phi_functions
 
 
 def hermite_coefficients(x0, v0, x1, v1, h):
@@ -267,7 +268,7 @@ class ConeActuator(eqx.Module):
         )
 
     def linearisation(self, t, y: ConeState, args: Loading) -> Linearisation:
-        """Stiff RC part frozen at the current geometry (for :class:`jaxdea.solver.LawsonRK4`)."""
+        """Stiff RC part frozen at the current geometry (for :mod:`jaxdea.solver`'s solvers)."""
         d = self.deflections(y.q)
         return ChargeLinearisation(
             template=y,
@@ -375,6 +376,21 @@ class ChargeLinearisation(Linearisation):
         zq = jnp.where(jnp.abs(zq) < 1e-100, 0.0, zq)
         out = eqx.tree_at(lambda s: s.charge, z, zq)
         return eqx.tree_at(lambda s: s.energy_in, out, z.energy_in - self.phi * gain * z.charge)
+
+    def phi_k(self, k, h, z):
+        """``phi_k(hA) z`` (:func:`jaxdea.solver.phi_functions`): ``phi_k(-kappa h)`` on the
+        charge; ``z / k!`` on the states outside the RC mode; on the input energy, driven by
+        the charge (``A``'s row ``-phi kappa``), ``z_E / k! + phi (phi_k(-kappa h) - 1/k!) z_Q``
+        (the divided difference of ``phi_k`` over ``A``'s eigenvalues ``-kappa`` and 0)."""
+        if k == 0:
+            return self.flow(h, z)
+        a = -jnp.asarray(self.kappa, jnp.float64) * h  # phi_k in float64 whatever the lanes
+        pk = phi_functions(a, k)[k].astype(z.charge.dtype)
+        fk = 1.0 / math.factorial(k)
+        out = jax.tree_util.tree_map(lambda x: fk * x, z)
+        out = eqx.tree_at(lambda s: s.charge, out, pk * z.charge)
+        return eqx.tree_at(lambda s: s.energy_in, out,
+                           fk * z.energy_in + self.phi * (pk - fk) * z.charge)
 
 
 class Model(eqx.Module):
