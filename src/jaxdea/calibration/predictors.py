@@ -20,7 +20,7 @@ import numpy as np
 from .._checks import CalibrationError, DataError
 from ..models.cone import Model
 from ..payloads import PayloadLaw
-from ..solver import ExponentialRK4, SemilinearTerm
+from ..solver import LawsonRK4, SemilinearTerm
 from ..studies import transient as ve
 from ..studies.loadings import make_loadings
 from .data import FrequencyResponse, TimeSeries
@@ -62,7 +62,7 @@ def frequency_response(model, data: FrequencyResponse, *, cycles: int = 20, aver
     ``data``: ``{"amplitude": m, "P_out": W}``.
 
     Paper 000's protocol (``cycles`` periods from rest, metrics over the last ``average``) on
-    a fixed grid of ``points_per_cycle`` :class:`~jaxdea.solver.ExponentialRK4` steps per period
+    a fixed grid of ``points_per_cycle`` :class:`~jaxdea.solver.LawsonRK4` steps per period
     (default: the even count that keeps steps below ``dt_max``; drive edges lie on the grid).
     Fixed steps make the output a smooth function of the parameters, so forward and reverse
     derivatives match finite differences; :func:`jaxdea.sweep`'s adaptive engine gives the
@@ -96,7 +96,7 @@ def frequency_response(model, data: FrequencyResponse, *, cycles: int = 20, aver
     act = model.actuator
     loadings = make_loadings(model, data.mass, None if payload is not None else data.damping,
                              f, payload=payload)
-    solver = ExponentialRK4()
+    solver = LawsonRK4()
     term = SemilinearTerm(act.vector_field, act.linearisation)
     start = (cycles - average) * ppc
 

@@ -176,6 +176,9 @@ def protocol_args(p: argparse.ArgumentParser) -> None:
                         "energy integrals stay float64), ~1.4x faster per step on CPU, within "
                         "1e-3 of double; paper/continuation only, with --early-exit off or "
                         ">= 1e-5")
+    p.add_argument("--solver", default="lawson", choices=["lawson", "exponential"],
+                   help="exponential: Krogstad's exponential RK4, ~2x more accurate at the same "
+                        "--rtol, 5-15 %% slower (docs/models.md section 4)")
 
 
 def early_exit(text: str) -> float | None:

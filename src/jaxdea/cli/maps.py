@@ -36,7 +36,8 @@ def _sweep(args) -> int:
     freq = parse_range(args.freq)
     model = jaxdea.load_config(args.config)
     check_cone_model(model)  # before its name is printed
-    control = jaxdea.StepControl(rtol=args.rtol, precision=args.precision)
+    control = jaxdea.StepControl(rtol=args.rtol, precision=args.precision,
+                                 solver=args.solver)
     payload, damping = cli_payload(args)
     _need_payload(args, payload, damping)
     print(f"jaxdea sweep: {model.name}, drive {args.drive}, {freq.size} frequencies "
@@ -155,7 +156,8 @@ def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client=N
                            phase=phase,
                            drive=args.drive, protocol=args.protocol, cycles=args.cycles,
                            average=args.average,
-                           control=jaxdea.StepControl(rtol=args.rtol, precision=args.precision),
+                           control=jaxdea.StepControl(rtol=args.rtol, precision=args.precision,
+                                                      solver=args.solver),
                            direction=args.direction, tol=args.tol, early_exit=args.early_exit,
                            start=args.start, chunk_cells=args.chunk, store=out, resume=args.resume,
                            progress=not args.no_progress, client=client)

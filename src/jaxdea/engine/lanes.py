@@ -10,8 +10,9 @@ and only a few cells are left, they move into a narrower pool (:func:`lane_pools
 costs about the same for a busy lane as for an idle one, so a wide pool that finishes one
 long cell would pay its full width for every step of it.
 
-Time stepping: adaptive steps of :class:`jaxdea.solver.ExponentialRK4` (RC charging exact,
-Krogstad's exponential RK4 with an embedded order-3 error estimate for the rest, standard
+Time stepping: adaptive steps of :class:`jaxdea.solver.LawsonRK4` (RC charging exact, RK4
+with an embedded order-3 error estimate for the rest; or Krogstad's
+:class:`~jaxdea.solver.ExponentialRK4` with ``StepControl(solver="exponential")``), standard
 I-controller on the scaled RMS error: :class:`~jaxdea.engine.step_control.IController`).
 Steps never cross a square-wave edge or a cycle boundary: each lane clips its step to the
 next node of its cell's cycle (all edges, any relative phase, and the period end), so no
@@ -56,7 +57,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..models.cone import ConeActuator, ConeState, Loading
-from ..solver import ExponentialRK4, SemilinearTerm
+from ..solver import ExponentialRK4, LawsonRK4, SemilinearTerm
 from .metrics import (
     CycleMetrics,
     all_finite,
@@ -237,7 +238,7 @@ def run_protocol(
     # static selection of the driven membranes: a slice when they are contiguous
     on = (slice(driven[0], driven[-1] + 1) if driven and driven == tuple(
         range(driven[0], driven[-1] + 1)) else np.asarray(driven, dtype=int))
-    solver = ExponentialRK4()
+    solver = ExponentialRK4() if control.solver == "exponential" else LawsonRK4()
     controller = IController(rtol=control.rtol, dt_max=control.dt_max)
     if initial is None and loadings.payload.loads_at_rest:  # a weight or a preloaded spring
         initial = rest_states(model, loadings)

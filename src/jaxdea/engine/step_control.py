@@ -25,27 +25,32 @@ class StepControl(NamedTuple):
     """Adaptive-step policy.
 
     ``rtol``: relative tolerance on the mechanical, dashpot and charge states (scaled RMS
-    norm; with :class:`~jaxdea.solver.ExponentialRK4` 1e-6 is ~2x more accurate against
-    LSODA than with the first release's :class:`~jaxdea.solver.LawsonRK4`, and 2e-6 as
-    accurate in 1.4x fewer steps for viscous payloads, but not for a Coulomb drag:
-    ``bench/NOTES.md``); ``dt_max``: largest step, s (explicit-RK4 stability of the
+    norm); ``dt_max``: largest step, s (explicit-RK4 stability of the
     mechanics needs < ~3 ms);
     ``max_steps``: per-cell step budget (status 3 when exhausted); ``precision``: ``"double"``
     (the default) or ``"single"``: the lanes' dynamical states (positions, velocities,
     charges, dashpot stretches) and the model's parameters in float32, time, step sizes and
     the energy integrals in float64 (:mod:`jaxdea.engine.precision`, which also says what
-    single precision refuses).
+    single precision refuses); ``solver``: ``"lawson"`` (the default,
+    :class:`~jaxdea.solver.LawsonRK4`) or ``"exponential"``
+    (:class:`~jaxdea.solver.ExponentialRK4`: ~2x more accurate against LSODA at the same
+    ``rtol``, 5-15 % slower on the power-map bench; ``rtol=2e-6`` with it is as accurate as
+    Lawson at 1e-6 on viscous payloads in 1.4x fewer steps, not on a Coulomb drag:
+    ``bench/NOTES.md``).
     """
 
     rtol: float = 1e-6
     dt_max: float = 1e-3
     max_steps: int = 5_000_000
     precision: str = "double"
+    solver: str = "lawson"
 
 
 #: The lanes' precisions (:class:`StepControl`; what single precision may be combined with:
 #: :func:`jaxdea.engine.precision.check_precision`).
 PRECISIONS = ("double", "single")
+#: The lanes' solvers (:class:`StepControl`).
+SOLVERS = ("lawson", "exponential")
 
 
 def check_control(control) -> None:
@@ -54,7 +59,7 @@ def check_control(control) -> None:
     **Arguments:**
 
     - `control`: should be a :class:`StepControl` with ``0 < rtol < 1``, ``dt_max > 0`` and
-      an integer ``max_steps >= 1``.
+      an integer ``max_steps >= 1``, a known ``precision`` and ``solver``.
 
     **Returns:**
 
@@ -71,6 +76,9 @@ def check_control(control) -> None:
     if control.precision not in PRECISIONS:
         raise SweepError(f"precision = {control.precision!r} must be one of "
                          f"{', '.join(map(repr, PRECISIONS))}")
+    if control.solver not in SOLVERS:
+        raise SweepError(f"solver = {control.solver!r} must be one of "
+                         f"{', '.join(map(repr, SOLVERS))}")
 
 
 #: Error weights of the states: the tolerance on a state is ``rtol * w * (s + |y|)`` with

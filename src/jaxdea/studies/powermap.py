@@ -358,7 +358,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
                  direction=direction if protocol == "continuation" else None,
                  tol=float(tol) if protocol == "periodic" else None, early_exit=early_exit,
                  **({"start": start} if protocol == "periodic" else {}),
-                 rtol=float(control.rtol), precision=control.precision,
+                 rtol=float(control.rtol), precision=control.precision, solver=control.solver,
                  dt_max=float(control.dt_max),
                  max_steps=int(control.max_steps), voltage=float(model.voltage),
                  duty=float(model.duty), jaxdea_version=jaxdea_version(),

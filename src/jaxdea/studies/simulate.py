@@ -15,7 +15,7 @@ import xarray as xr
 
 from .._checks import SweepError, check_protocol
 from ..models.cone import Model
-from ..solver import ExponentialRK4, SemilinearTerm
+from ..solver import LawsonRK4, SemilinearTerm
 from .loadings import check_payload, make_loadings, payload_parameters, warn_breakdown
 
 
@@ -23,7 +23,7 @@ from .loadings import check_payload, make_loadings, payload_parameters, warn_bre
 def _solve(actuator, loading, ts):
     term = SemilinearTerm(actuator.vector_field, actuator.linearisation)
     sol = diffrax.diffeqsolve(
-        term, ExponentialRK4(), t0=ts[0], t1=ts[-1], dt0=None,
+        term, LawsonRK4(), t0=ts[0], t1=ts[-1], dt0=None,
         y0=actuator.initial_state(loading.payload), args=loading, saveat=diffrax.SaveAt(ts=ts),
         stepsize_controller=diffrax.StepTo(ts=ts), max_steps=ts.shape[0],
     )
@@ -42,7 +42,7 @@ def time_grid(frequency: float, cycles: int, points_per_cycle: int,
 def simulate(model: Model, *, mass: float | None = None, damping: float | None = None,
              freq: float, payload=None, drive: str = "A", phase: float = 0.0,
              cycles: int = 10, points_per_cycle: int = 400) -> xr.Dataset:
-    """Time history of one cone drive case from rest (fixed exponential RK4 steps, edges on the
+    """Time history of one cone drive case from rest (fixed Lawson RK4 steps, edges on the
     grid), for plots and checks; power studies use :func:`jaxdea.sweep`.
 
     **Arguments:**

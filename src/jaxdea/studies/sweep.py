@@ -111,7 +111,8 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
         early_exit=(float(early_exit) if early_exit is not None and protocol != "periodic"
                     else None),
         cycles=int(cycles), average=int(average),
-        rtol=control.rtol, precision=control.precision, voltage=float(model.voltage),
+        rtol=control.rtol, precision=control.precision, solver=control.solver,
+        voltage=float(model.voltage),
         duty=float(model.duty),
     ))
 
