@@ -221,6 +221,8 @@ def test_resume_protection_messages(model, tmp_path, capsys):
         (dict(control=jaxdea.StepControl(rtol=0.0)), jaxdea.SweepError, "rtol = 0.0"),
         (dict(control=jaxdea.StepControl(precision="half")), jaxdea.SweepError,
          "precision = 'half' must be one of 'double', 'single'"),
+        (dict(control=jaxdea.StepControl(solver="rk45")), jaxdea.SweepError,
+         "solver = 'rk45' must be one of lawson, exponential"),
         (dict(control=jaxdea.StepControl(precision="single")), jaxdea.SweepError,
          "early_exit = 1e-08 is below the periodicity float32 lanes resolve"),
         (dict(control=jaxdea.StepControl(precision="single"), protocol="periodic"),

@@ -75,8 +75,8 @@ __all__ = [
     "CalibrationError", "ConfigError", "DataError", "FieldWarning", "JaxdeaError", "SweepError",
     # leaves
     "Combined", "ConeMembrane", "Drag", "Elastic", "ExponentialRK4", "GentKelvinChain",
-    "GentMaxwell",
-    "GentSpringDashpot", "Gravity", "LawsonRK4", "LinearViscous", "MultiSine", "PayloadLaw",
+    "GentMaxwell", "GentSpringDashpot", "Gravity", "LawsonRK4", "LinearViscous", "MultiSine",
+    "PayloadLaw",
     "SemilinearTerm", "Sine", "SquareWave", "TriangularPattern",
     "payloads", "voltage_pattern",
     # models

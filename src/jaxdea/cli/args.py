@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxdea.engine.step_control import SOLVERS, StepControl
+
 #: The most points one command-line range may hold: a guard against a typo (``1:100:1e-9``)
 #: that would allocate terabytes before any check; a larger grid is several runs.
 MAX_POINTS = 1_000_000
@@ -176,7 +178,7 @@ def protocol_args(p: argparse.ArgumentParser) -> None:
                         "energy integrals stay float64), ~1.4x faster per step on CPU, within "
                         "1e-3 of double; paper/continuation only, with --early-exit off or "
                         ">= 1e-5")
-    p.add_argument("--solver", default="lawson", choices=["lawson", "exponential"],
+    p.add_argument("--solver", default=StepControl().solver, choices=SOLVERS,
                    help="exponential: Krogstad's exponential RK4, ~2x more accurate at the same "
                         "--rtol, 5-15 %% slower (docs/models.md section 4)")
 

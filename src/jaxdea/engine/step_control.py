@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._checks import SweepError, check_int, check_unit_interval
+from .._checks import SweepError, check_choice, check_int, check_unit_interval
 from ..models.cone import ConeState
 
 
@@ -25,8 +25,7 @@ class StepControl(NamedTuple):
     """Adaptive-step policy.
 
     ``rtol``: relative tolerance on the mechanical, dashpot and charge states (scaled RMS
-    norm); ``dt_max``: largest step, s (explicit-RK4 stability of the
-    mechanics needs < ~3 ms);
+    norm); ``dt_max``: largest step, s (explicit-RK4 stability of the mechanics needs < ~3 ms);
     ``max_steps``: per-cell step budget (status 3 when exhausted); ``precision``: ``"double"``
     (the default) or ``"single"``: the lanes' dynamical states (positions, velocities,
     charges, dashpot stretches) and the model's parameters in float32, time, step sizes and
@@ -76,9 +75,7 @@ def check_control(control) -> None:
     if control.precision not in PRECISIONS:
         raise SweepError(f"precision = {control.precision!r} must be one of "
                          f"{', '.join(map(repr, PRECISIONS))}")
-    if control.solver not in SOLVERS:
-        raise SweepError(f"solver = {control.solver!r} must be one of "
-                         f"{', '.join(map(repr, SOLVERS))}")
+    check_choice("solver", control.solver, SOLVERS)
 
 
 #: Error weights of the states: the tolerance on a state is ``rtol * w * (s + |y|)`` with
