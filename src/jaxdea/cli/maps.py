@@ -37,7 +37,7 @@ def _sweep(args) -> int:
     model = jaxdea.load_config(args.config)
     check_cone_model(model)  # before its name is printed
     control = jaxdea.StepControl(rtol=args.rtol, precision=args.precision,
-                                 solver=args.solver)
+                                 solver=args.solver, extrapolate=args.extrapolate)
     payload, damping = cli_payload(args)
     _need_payload(args, payload, damping)
     print(f"jaxdea sweep: {model.name}, drive {args.drive}, {freq.size} frequencies "
@@ -157,7 +157,8 @@ def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client=N
                            drive=args.drive, protocol=args.protocol, cycles=args.cycles,
                            average=args.average,
                            control=jaxdea.StepControl(rtol=args.rtol, precision=args.precision,
-                                                      solver=args.solver),
+                                                      solver=args.solver,
+                                                      extrapolate=args.extrapolate),
                            direction=args.direction, tol=args.tol, early_exit=args.early_exit,
                            start=args.start, chunk_cells=args.chunk, store=out, resume=args.resume,
                            progress=not args.no_progress, client=client)

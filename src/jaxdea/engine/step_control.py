@@ -35,7 +35,12 @@ class StepControl(NamedTuple):
     (:class:`~jaxdea.solver.ExponentialRK4`: ~2x more accurate against LSODA at the same
     ``rtol``, 5-15 % slower on the power-map bench; ``rtol=2e-6`` with it is as accurate as
     Lawson at 1e-6 on viscous payloads in 1.4x fewer steps, not on a Coulomb drag:
-    ``bench/NOTES.md``).
+    ``bench/NOTES.md``); ``extrapolate``: ``None`` (the default) or a tolerance in (0, 1):
+    in the papers' protocol a cell whose slow transient fits a low-order linear recurrence
+    of its cycle-start states to this estimated error (scaled units) jumps to the start of
+    its averaged cycles instead of integrating the cycles in between
+    (:mod:`jaxdea.engine.extrapolate`; the same answer to the integration's accuracy in
+    fewer steps, ``bench/NOTES.md``).
     """
 
     rtol: float = 1e-6
@@ -43,6 +48,7 @@ class StepControl(NamedTuple):
     max_steps: int = 5_000_000
     precision: str = "double"
     solver: str = "lawson"
+    extrapolate: float | None = None
 
 
 #: The lanes' precisions (:class:`StepControl`; what single precision may be combined with:
@@ -76,6 +82,8 @@ def check_control(control) -> None:
         raise SweepError(f"precision = {control.precision!r} must be one of "
                          f"{', '.join(map(repr, PRECISIONS))}")
     check_choice("solver", control.solver, SOLVERS)
+    if control.extrapolate is not None:
+        check_unit_interval("extrapolate", control.extrapolate)
 
 
 #: Error weights of the states: the tolerance on a state is ``rtol * w * (s + |y|)`` with

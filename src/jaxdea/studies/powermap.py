@@ -359,6 +359,8 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
                  tol=float(tol) if protocol == "periodic" else None, early_exit=early_exit,
                  **({"start": start} if protocol == "periodic" else {}),
                  rtol=float(control.rtol), precision=control.precision, solver=control.solver,
+                 extrapolate=(float(control.extrapolate) if control.extrapolate is not None
+                              and protocol != "periodic" else None),
                  dt_max=float(control.dt_max),
                  max_steps=int(control.max_steps), voltage=float(model.voltage),
                  duty=float(model.duty), jaxdea_version=jaxdea_version(),

@@ -112,6 +112,8 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
                     else None),
         cycles=int(cycles), average=int(average),
         rtol=control.rtol, precision=control.precision, solver=control.solver,
+        extrapolate=(float(control.extrapolate) if control.extrapolate is not None
+                     and protocol != "periodic" else None),
         voltage=float(model.voltage),
         duty=float(model.duty),
     ))
