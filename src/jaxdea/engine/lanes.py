@@ -417,7 +417,7 @@ def run_protocol(
         if jump is not None:
             lane, want = _extrapolate.record(lane, cycles, average)
             lane = jax.lax.cond(jnp.any(want), lambda ln, w: _extrapolate.jump(
-                ln, w, cycles, average, jump, control.dt_max), lambda ln, _: ln, lane, want)
+                ln, w, cycles, average, jump), lambda ln, _: ln, lane, want)
         finished = lane.done & (lane.job < n_cells)
         out = harvest(out, lane, finished)
         # a finished cell's successor goes on from its final state; other lanes take the
