@@ -16,9 +16,9 @@ extrapolate=...)``) jumps there, then integrates the averaged cycles as usual.
 
 The recurrence is fitted by least squares on the last ``2m`` difference equations (scaled
 states, :data:`~jaxdea.engine.step_control.SCALES`); a second fit without the newest
-difference predicts it, and that prediction's relative error times the size of the jump is
-the jump's error estimate. A jump is taken only when that estimate is below the tolerance
-and the predicted differences decay.
+difference predicts it, and that prediction's relative error times the size of the jump
+(times ``1 + size / |d_n|``, :func:`predict`) is the jump's error estimate. A jump is taken
+only when that estimate is below the tolerance and the predicted differences decay.
 """
 
 from __future__ import annotations
@@ -135,18 +135,19 @@ def predict(history: Array, cycle: Array, target: Array) -> tuple[Array, Array]:
     rows = (cycle - HISTORY + 1 + jnp.arange(HISTORY)) % HISTORY
     x = history[rows]  # oldest first
     d = jnp.diff(x, axis=0)  # (HISTORY - 1, n)
+    newest_abs = jnp.max(jnp.abs(d[-1]))
+    newest = jnp.maximum(newest_abs, 1e-300)
     # the check: fit without the newest difference, predict it
     c_old = fit_recurrence(d[:-1][-(3 * m):])
     guess = jnp.tensordot(c_old, d[-1 - m:-1], axes=1)
-    eps = jnp.max(jnp.abs(guess - d[-1])) / jnp.maximum(jnp.max(jnp.abs(d[-1])), 1e-300)
+    eps = jnp.max(jnp.abs(guess - d[-1])) / newest
     c = fit_recurrence(d[-(3 * m):])
 
     powers, sums = _power_and_sum(_companion(c), target - cycle)
     total = jnp.tensordot(sums[-1], d[-m:], axes=1)  # the newest difference, summed forward
     last = jnp.tensordot(powers[-1], d[-m:], axes=1)
     size = jnp.max(jnp.abs(total))
-    newest = jnp.maximum(jnp.max(jnp.abs(d[-1])), 1e-300)
-    decays = jnp.max(jnp.abs(last)) <= jnp.max(jnp.abs(d[-1]))
+    decays = jnp.max(jnp.abs(last)) <= newest_abs
     fits = decays & jnp.isfinite(size) & jnp.isfinite(eps) & (target - cycle < 2 ** JUMP_BITS)
     # a relative error eps in the modes' multipliers grows over the jump like the sum's
     # derivative: by ~1 / (1 - rate), which size / newest estimates
@@ -193,8 +194,8 @@ def record(lane, cycles, average):
 
 
 def jump(lane, want, cycles, average, tol):
-    """Lanes ``want`` whose transient extrapolates to within ``tol`` (:func:`predict`) jump
-    to the start of the averaged cycles; the others go on as they were.
+    """The lanes ``want`` whose transient extrapolates to within ``tol`` (:func:`predict`),
+    and where they jump: the start of the averaged cycles.
 
     **Arguments:**
 
@@ -204,28 +205,27 @@ def jump(lane, want, cycles, average, tol):
 
     **Returns:**
 
-    The lanes; a jumped lane starts cycle ``cycles - average`` from the predicted state
-    with a fresh window (and the step size it had proposed), and never jumps again. At most
-    :data:`TRIES` lanes try per call; the others try again after their next cycle.
+    ``(go, moved)``: which lanes jump, and every lane as it would be after a jump (the
+    caller selects ``moved`` where ``go``): cycle ``cycles - average`` from the predicted
+    state with a fresh window (and the step size it had proposed), never to jump again. At
+    most :data:`TRIES` lanes try per call; the others try again after their next cycle.
     """
     n = want.shape[0]
     idx = jnp.nonzero(want, size=min(TRIES, n), fill_value=n)[0]
     safe = jnp.minimum(idx, n - 1)
-    target = (cycles - average) + jnp.zeros(idx.shape[0], lane.cycle.dtype)
-    x, error = jax.vmap(predict)(lane.history[safe], lane.cycle[safe], target)
+    target = (cycles - average) + jnp.zeros(n, lane.cycle.dtype)
+    x, error = jax.vmap(predict)(lane.history[safe], lane.cycle[safe], target[safe])
     go = jnp.zeros(n, bool).at[idx].set(error < tol, mode="drop")
     x = jnp.zeros((n, x.shape[1]), x.dtype).at[idx].set(x, mode="drop")
     y = jax.vmap(unflatten)(x, lane.y)
-    target = (cycles - average) + jnp.zeros(n, lane.cycle.dtype)
-    # the step it proposed mid-cycle: restarting at a fresh cell's first step (T/200) put
-    # P_out 4e-5 and the amplitude 1e-3 off the full run (64 cells at 60-200 Hz; 8e-6 and
-    # 8e-5 this way): the step control then under-resolves the first step after the edge
-    h = lane.h
+    # h stays the step the lane proposed mid-cycle: restarting at a fresh cell's first step
+    # (T/200) put P_out 4e-5 and the amplitude 1e-3 off the full run (64 cells at 60-200 Hz;
+    # 8e-6 and 8e-5 this way): the step control then under-resolves the first step after
+    # the edge
     moved = eqx.tree_at(
-        lambda s: (s.y, s.cycle, s.u, s.h, s.window, s.wcycle, s.prev, s.res, s.ratio,
-                   s.rate, s.back, s.xmin, s.xmax, s.streak),
-        lane, (y, target, jnp.zeros(n), h, y, target, y, jnp.full(n, jnp.inf), jnp.ones(n),
+        lambda s: (s.y, s.cycle, s.u, s.window, s.wcycle, s.prev, s.res, s.ratio, s.rate,
+                   s.back, s.xmin, s.xmax, s.streak),
+        lane, (y, target, jnp.zeros(n), y, target, y, jnp.full(n, jnp.inf), jnp.ones(n),
                jnp.ones(n), jnp.zeros_like(lane.back), jnp.full(n, jnp.inf),
                jnp.full(n, -jnp.inf), jnp.full(n, -(2 ** 30), jnp.int32)))
-    return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(go.reshape(go.shape + (1,) * (a.ndim - 1)), a, b), moved, lane)
+    return go, moved

@@ -259,8 +259,10 @@ def run_protocol(
     jump = control.extrapolate if (settle is None or not require_settled) else None
     if isinstance(cycles, int) and cycles < _extrapolate.HISTORY + 3:
         jump = None
-    n_flat = _extrapolate.flatten(y0).size
-    hist_shape = (_extrapolate.HISTORY, n_flat) if jump is not None else (0, 0)
+    # per-lane shapes of the extrapolation's records: empty when it is off
+    hist_shape = (_extrapolate.HISTORY, _extrapolate.flatten(y0).size) if jump is not None \
+        else (0, 0)
+    count_shape = () if jump is not None else (0,)
 
     def charge_error_weight(lane: _Lane):
         """The charge's error weight of the lane's cell (``step_control.charge_weight``); in
@@ -311,8 +313,8 @@ def run_protocol(
             lockup=jnp.zeros(n, bool),
             done=idx >= n_cells,
             history=jnp.zeros((n,) + hist_shape),
-            recorded=jnp.full((n,) if jump is not None else (n, 0), -1, jnp.int32),
-            streak=jnp.zeros((n,) if jump is not None else (n, 0), jnp.int32),
+            recorded=jnp.full((n,) + count_shape, -1, jnp.int32),
+            streak=jnp.zeros((n,) + count_shape, jnp.int32),
         )
 
     def load(lane: _Lane, idx: Array, y: ConeState, mask: Array) -> _Lane:
@@ -416,8 +418,9 @@ def run_protocol(
         lane = jax.lax.fori_loop(0, steps_per_round, lambda _, ln: jax.vmap(lane_step)(ln), lane)
         if jump is not None:
             lane, want = _extrapolate.record(lane, cycles, average)
-            lane = jax.lax.cond(jnp.any(want), lambda ln, w: _extrapolate.jump(
-                ln, w, cycles, average, jump), lambda ln, _: ln, lane, want)
+            lane = jax.lax.cond(jnp.any(want), lambda ln, w: select_cells(
+                *_extrapolate.jump(ln, w, cycles, average, jump), ln), lambda ln, _: ln,
+                lane, want)
         finished = lane.done & (lane.job < n_cells)
         out = harvest(out, lane, finished)
         # a finished cell's successor goes on from its final state; other lanes take the

@@ -86,6 +86,14 @@ def check_control(control) -> None:
         check_unit_interval("extrapolate", control.extrapolate)
 
 
+def control_attrs(control: StepControl, protocol: str) -> dict:
+    """The step policy as a map's or sweep's metadata: ``rtol``, ``precision``, ``solver``
+    and ``extrapolate`` (``None`` where ``protocol`` is ``"periodic"``, which ignores it)."""
+    extrapolate = control.extrapolate if protocol != "periodic" else None
+    return dict(rtol=float(control.rtol), precision=control.precision, solver=control.solver,
+                extrapolate=None if extrapolate is None else float(extrapolate))
+
+
 #: Error weights of the states: the tolerance on a state is ``rtol * w * (s + |y|)`` with
 #: ``(s, w)`` below (SI). Charge gets a 10x tighter weight because P_in needs the current
 #: ``i = (Phi - Q/C) / 2R_s``, which amplifies charge errors by ``1/(2 R_s C)`` ~ 2e4 /s.

@@ -51,7 +51,7 @@ from ..engine.metrics import STATUS
 from ..engine.precision import check_precision
 from ..engine.protocols import STARTS, Protocol, as_keywords
 from ..engine.sharding import on_accelerator
-from ..engine.step_control import StepControl, check_control
+from ..engine.step_control import StepControl, check_control, control_attrs
 from ..models.cone import Model
 from ..payloads import parameters
 from .distributed import (
@@ -358,9 +358,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
                  direction=direction if protocol == "continuation" else None,
                  tol=float(tol) if protocol == "periodic" else None, early_exit=early_exit,
                  **({"start": start} if protocol == "periodic" else {}),
-                 rtol=float(control.rtol), precision=control.precision, solver=control.solver,
-                 extrapolate=(float(control.extrapolate) if control.extrapolate is not None
-                              and protocol != "periodic" else None),
+                 **control_attrs(control, protocol),
                  dt_max=float(control.dt_max),
                  max_steps=int(control.max_steps), voltage=float(model.voltage),
                  duty=float(model.duty), jaxdea_version=jaxdea_version(),

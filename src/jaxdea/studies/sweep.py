@@ -15,7 +15,7 @@ from ..engine.batch import DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors, 
 from ..engine.metrics import STATUS, STEADY_RESIDUAL, CycleMetrics, steady_cells
 from ..engine.precision import check_precision
 from ..engine.protocols import Protocol, as_keywords, check_rest_start
-from ..engine.step_control import StepControl, check_control
+from ..engine.step_control import StepControl, check_control, control_attrs
 from ..models.cone import Model
 from ..payloads import PARAMETER_UNITS
 from .loadings import check_payload, make_loadings, payload_parameters, warn_breakdown
@@ -111,9 +111,7 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
         early_exit=(float(early_exit) if early_exit is not None and protocol != "periodic"
                     else None),
         cycles=int(cycles), average=int(average),
-        rtol=control.rtol, precision=control.precision, solver=control.solver,
-        extrapolate=(float(control.extrapolate) if control.extrapolate is not None
-                     and protocol != "periodic" else None),
+        **control_attrs(control, protocol),
         voltage=float(model.voltage),
         duty=float(model.duty),
     ))
