@@ -114,6 +114,12 @@ class _Lane(eqx.Module):
     history: Array  # cycle-start states for the transient's extrapolation (empty when off)
     recorded: Array  # the last cycle whose start state is in history (empty when off)
     streak: Array  # consecutive cycle-start states in history; < 0 after a jump (empty: off)
+    origin: Array  # the cycle-start state a lane jumped from, flattened (empty when off)
+    landing: Array  # the state it jumped to, flattened (empty when off)
+    jumped_from: Array  # the cycle it jumped from until the jump is checked, else -1
+    expect: Array  # the difference the fit predicted after the landing (empty when off)
+    guess: Array  # the lane's last prediction of its jump's landing, flattened (empty: off)
+    guessed: Array  # the cycle that prediction was made at, else -1 (empty when off)
 
 
 #: Smallest lane pool that gets a smaller pool for the end of its batch (:func:`lane_pools`).
@@ -315,6 +321,12 @@ def run_protocol(
             history=jnp.zeros((n,) + hist_shape),
             recorded=jnp.full((n,) + count_shape, -1, jnp.int32),
             streak=jnp.zeros((n,) + count_shape, jnp.int32),
+            origin=jnp.zeros((n,) + hist_shape[1:]),
+            landing=jnp.zeros((n,) + hist_shape[1:]),
+            jumped_from=jnp.full((n,) + count_shape, -1, jnp.int32),
+            expect=jnp.zeros((n,) + count_shape),
+            guess=jnp.zeros((n,) + hist_shape[1:]),
+            guessed=jnp.full((n,) + count_shape, -1, jnp.int32),
         )
 
     def load(lane: _Lane, idx: Array, y: ConeState, mask: Array) -> _Lane:
@@ -419,8 +431,10 @@ def run_protocol(
         if jump is not None:
             lane, want = _extrapolate.record(lane, cycles, average)
             lane = jax.lax.cond(jnp.any(want), lambda ln, w: select_cells(
-                *_extrapolate.jump(ln, w, cycles, average, jump), ln), lambda ln, _: ln,
+                *_extrapolate.jump(ln, w, cycles, average, jump)), lambda ln, _: ln,
                 lane, want)
+            lane = jax.lax.cond(jnp.any(lane.jumped_from >= 0), lambda ln: select_cells(
+                *_extrapolate.verify(ln, cycles, average, jump)), lambda ln: ln, lane)
         finished = lane.done & (lane.job < n_cells)
         out = harvest(out, lane, finished)
         # a finished cell's successor goes on from its final state; other lanes take the
