@@ -115,7 +115,7 @@ def _power_and_sum(a: Array, n: Array) -> tuple[Array, Array]:
     return power, total
 
 
-def predict(history: Array, cycle: Array, target: Array) -> tuple[Array, Array]:
+def predict(history: Array, cycle: Array, target: Array) -> tuple[Array, Array, Array]:
     """The cycle-start state after ``target`` cycles, from the last :data:`HISTORY` ones.
 
     **Arguments:**
