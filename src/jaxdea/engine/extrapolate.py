@@ -257,14 +257,22 @@ def jump(lane, want, cycles, average, tol):
     # the edge
     newest = lane.history[jnp.arange(n), lane.cycle % HISTORY]
     moved = eqx.tree_at(
-        lambda s: (s.y, s.cycle, s.u, s.window, s.wcycle, s.prev, s.res, s.ratio, s.rate,
-                   s.back, s.xmin, s.xmax, s.streak, s.origin, s.landing, s.jumped_from,
-                   s.expect),
-        tried, (y, target, jnp.zeros(n), y, target, y, jnp.full(n, jnp.inf), jnp.ones(n),
-                jnp.ones(n), jnp.zeros_like(lane.back), jnp.full(n, jnp.inf),
-                jnp.full(n, -jnp.inf), jnp.full(n, -(2 ** 30), jnp.int32), newest, x,
-                lane.cycle, step))
+        lambda s: (s.streak, s.origin, s.landing, s.jumped_from, s.expect),
+        _restart(tried, y, target),
+        (jnp.full(n, -(2 ** 30), jnp.int32), newest, x, lane.cycle, step))
     return go, moved, tried
+
+
+def _restart(lane, y, cycle):
+    """``lane`` at the start of cycle ``cycle`` from state ``y``, with a fresh window and
+    periodicity record (a jump's landing, or a taken-back jump's origin)."""
+    n = cycle.shape[0]
+    return eqx.tree_at(
+        lambda s: (s.y, s.cycle, s.u, s.window, s.wcycle, s.prev, s.res, s.ratio, s.rate,
+                   s.back, s.xmin, s.xmax),
+        lane, (y, cycle, jnp.zeros(n), y, cycle, y, jnp.full(n, jnp.inf), jnp.ones(n),
+               jnp.ones(n), jnp.zeros_like(lane.back), jnp.full(n, jnp.inf),
+               jnp.full(n, -jnp.inf)))
 
 
 #: A jump is taken back when the first cycle after it moves the state by more than the
@@ -308,11 +316,7 @@ def verify(lane, cycles, average, tol):
         & ~(moved <= lane.expect + VERIFY * tol)
     kept = eqx.tree_at(lambda s: s.jumped_from, lane, jnp.where(checked, -1, lane.jumped_from))
     y = jax.vmap(unflatten)(lane.origin, lane.y)
-    start = jnp.maximum(lane.jumped_from, 0)
-    undone = eqx.tree_at(
-        lambda s: (s.y, s.cycle, s.u, s.window, s.wcycle, s.prev, s.res, s.ratio, s.rate,
-                   s.back, s.xmin, s.xmax, s.done),
-        kept, (y, start, jnp.zeros(n), y, start, y, jnp.full(n, jnp.inf), jnp.ones(n),
-               jnp.ones(n), jnp.zeros_like(lane.back), jnp.full(n, jnp.inf),
-               jnp.full(n, -jnp.inf), jnp.zeros(n, bool)))
+    undone = eqx.tree_at(lambda s: s.done,
+                         _restart(kept, y, jnp.maximum(lane.jumped_from, 0)),
+                         jnp.zeros(n, bool))
     return back, undone, kept
