@@ -96,8 +96,9 @@ class Clock:
 
 
 def _period_steps(args, kwargs, out) -> int:
-    """Steps of the active cells of a one-period call ``(actuator, loadings, y, active)``."""
-    return int(np.sum(np.where(np.asarray(args[3]), np.asarray(out.steps), 0)))
+    """Steps of the active cells of a one-period call
+    ``(program, actuator, loadings, y, active)``."""
+    return int(np.sum(np.where(np.asarray(args[4]), np.asarray(out.steps), 0)))
 
 
 def _rest_steps(args, kwargs, out) -> tuple[bool, int]:
@@ -122,13 +123,10 @@ def main() -> None:
 
     def cell_sharded(fn, devices):
         run = sharded(fn, devices)
-        if fn.__name__ == "_one_period":
-            return clock.wrap("chord_periods", run, _period_steps)
-        if fn.__name__ == "shoot_period":
-            return clock.wrap("chord_shots", run)
-        return run
+        return clock.wrap("chord_shots", run) if fn.__name__ == "shoot_period" else run
 
     chord.cell_sharded = cell_sharded
+    chord.one_period = clock.wrap("chord_periods", chord.one_period, _period_steps)
     warmstart.periodic_cells = clock.wrap("rest", warmstart.periodic_cells, _rest_steps)
     warmstart.chord_cells = clock.wrap("chord", warmstart.chord_cells)
     warmstart.chord_columns = clock.wrap_generator("chord", warmstart.chord_columns)

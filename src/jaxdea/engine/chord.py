@@ -16,7 +16,6 @@ import jax
 import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
-from .lanes import run_protocol
 from .metrics import CycleMetrics
 from .periodic import (
     PER_CELL,
@@ -24,6 +23,9 @@ from .periodic import (
     flatten_dynamical,
     floquet_radius,
     newton_step,
+    one_period,
+    settle_pools,
+    settle_program,
     shoot_period,
     shooting_lanes,
     step_residual,
@@ -36,23 +38,9 @@ from .step_control import StepControl
 #: DCDEA-LS bench grid (2 masses x 50 dampings x 100 frequencies) a warm-started cell took
 #: 5.2 periods on average; 2 % needed more than 8.
 CHORD_ITERATIONS = 8
-#: Narrower lane pools a chord call's period ends in (:func:`jaxdea.engine.lanes.lane_pools`).
-#: A call lasts as long as its longest period, and after the first iterations only a few
-#: cells of a stage are still pending: in a 128-lane pool each of their steps costs the
-#: full width. One period of an 11-200 Hz stage (2400 cells, 2 devices), after compile:
-#: 20 cells active 47 -> 10.6 ms with a 32-lane tail (16 lanes: 12.5), 200 cells 40.7 ->
-#: 19.7 ms, all 2400 98 -> 66 ms.
-CHORD_TAIL_POOLS = (32,)
 #: Floquet radius of the Broyden-updated Jacobian above which a chord-converged orbit's
 #: stability is checked with a true Jacobian (one shot).
 VERIFY_RADIUS = 0.98
-
-
-def _one_period(actuator, loadings, initial, active, *, control, lanes, driven):
-    return run_protocol(actuator, loadings, cycles=1, average=1, initial=initial,
-                        active=active, control=control,
-                        pools=tuple(p for p in (lanes,) + CHORD_TAIL_POOLS if p <= lanes),
-                        driven=driven)
 
 
 def chord_cells(actuator: ConeActuator, loadings: Loading, initial: ConeState,
@@ -138,11 +126,14 @@ class Chord:
 
     def __init__(self, actuator, devices, tol, control, lanes, driven):
         self.actuator, self.tol = actuator, tol
-        self.kw = dict(control=control, lanes=lanes, driven=driven)
+        self.control, self.lanes, self.driven = control, lanes, driven
         self.shot_kw = dict(control=control, lanes=shooting_lanes(lanes, devices),
                             driven=driven)
         self.devices = devices
-        self.one = cell_sharded(_one_period, devices)
+        # a period is the settling program with a budget of one period (one_period): the
+        # program the chain's from-rest solves compiled already, ending in the same narrow
+        # pool as they do, so that a call with a few cells left costs a few lanes' steps
+        self.one = settle_program(devices)
         self.shoot = cell_sharded(shoot_period, devices)
 
     def iterate(self, loadings, seed, it: Iterates):
@@ -156,7 +147,10 @@ class Chord:
         pending = it.pending
         y = with_dynamical(seed, it.flat)
         fresh = pending & (it.k == 0) & ~np.isfinite(it.jac).all(axis=(1, 2))
-        r = to_host(self.one(self.actuator, loadings, y, pending & ~fresh, **self.kw))
+        n_local = jax.tree_util.tree_leaves(loadings)[0].shape[0] // len(self.devices)
+        r = one_period(self.one, self.actuator, loadings, y, pending & ~fresh,
+                       control=self.control, pools=settle_pools(n_local, self.lanes),
+                       driven=self.driven)
         if fresh.any():  # shot first: exact Jacobians
             rs, js, _ = to_host(self.shoot(self.actuator, loadings, y, fresh, **self.shot_kw))
             r = pick(fresh, rs, r)

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
-from .lanes import run_protocol, select_cells
+from .lanes import lane_pools, rest_states, run_protocol, select_cells
 from .metrics import DYNAMICAL, CycleMetrics, periodicity_residual
 from .sharding import cell_sharded, on_accelerator, to_host
 from .step_control import StepControl
@@ -63,11 +63,45 @@ def with_dynamical(y: ConeState, flat: jax.Array) -> ConeState:
     return eqx.tree_at(lambda s: tuple(getattr(s, k) for k in DYNAMICAL), y, tuple(out))
 
 
-def _settle(actuator, loadings, initial=None, active=None, *, warmup, tol, control, lanes,
-            driven):
-    return run_protocol(actuator, loadings, cycles=warmup, average=1, settle=tol,
-                        control=control, lanes=lanes, driven=driven, initial=initial,
-                        active=active)
+def _settle(budget, loadings, initial, active, *, control, pools, driven):
+    """Settle the ``active`` cells from ``initial`` for at most ``cycles`` periods, stopping
+    each where its residual is below ``tol``: ``budget = (actuator, cycles, tol)``, the two
+    numbers as arrays (traced), so that one compiled program serves every budget. With
+    ``(actuator, 1, 0)`` it is one plain period from ``initial`` (a chord iteration, with
+    status 4 where the period went well: nothing settles below 0; :func:`one_period`)."""
+    actuator, cycles, tol = budget
+    return run_protocol(actuator, loadings, cycles=cycles, average=jnp.ones_like(cycles),
+                        settle=tol, control=control, pools=pools, driven=driven,
+                        initial=initial, active=active)
+
+
+def settle_program(devices: tuple):
+    """The compiled settling program of :func:`_settle` on ``devices``: one per device set,
+    shared by the from-rest settling of :func:`periodic_cells` and the one-period calls of
+    the chord iterations (:func:`one_period`), so that a warm-started map compiles it once."""
+    return cell_sharded(_settle, devices) if len(devices) > 1 else _SETTLE
+
+
+def settle_pools(n_local: int, lanes: int | None) -> tuple[int, ...]:
+    """The lane pools of the settling program for ``n_local`` cells per device and ``lanes``
+    lanes per device (default 32): :func:`~jaxdea.engine.lanes.lane_pools` with an early
+    exit. A chord iteration's period runs through the same pools, so that one program serves
+    both (measured: ``bench/NOTES.md``)."""
+    return lane_pools(int(min(n_local, lanes or 32)))
+
+
+def settle_budget(actuator, cycles: int, tol: float):
+    """``budget`` of :func:`_settle`: the numbers as arrays (traced, not compile-time)."""
+    return actuator, np.asarray(cycles, np.int32), np.asarray(tol, np.float64)
+
+
+def one_period(program, actuator, loadings, initial, active, *, control, pools, driven):
+    """One plain period of the ``active`` cells from ``initial`` with the settling
+    ``program`` (:func:`settle_program`): host :class:`CycleMetrics`, status 0 where the
+    period went well."""
+    r = to_host(program(settle_budget(actuator, 1, 0.0), loadings, initial, active,
+                        control=control, pools=pools, driven=driven))
+    return eqx.tree_at(lambda m: m.status, r, np.where(r.status == 4, 0, r.status))
 
 
 def shoot_period(actuator, loadings, y, active, *, control, lanes, driven):
@@ -205,7 +239,7 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     if not (np.isfinite(tol) and 0 < tol < 1):
         raise ValueError(f"tol = {tol!r} is outside the allowed range (0, 1)")
     devices = tuple(devices or jax.devices()[:1])
-    settle = cell_sharded(_settle, devices) if len(devices) > 1 else _SETTLE
+    settle = settle_program(devices)
     shoot = cell_sharded(shoot_period, devices) if len(devices) > 1 else _SHOOT
     driven = None if driven is None else tuple(int(j) for j in driven)
     # Every stage's results come to the host (to_host) before the Newton bookkeeping below
@@ -213,8 +247,12 @@ def periodic_cells(actuator: ConeActuator, loadings: Loading, *, tol: float = 1e
     # replicated one may compile to a collective, which XLA aborts on when one device is
     # 40 s late. Cells are independent; nothing here needs one.
     active = None if active is None else np.asarray(active, bool)
-    res = to_host(settle(actuator, loadings, initial, active, warmup=int(warmup),
-                         tol=float(tol), control=control, lanes=lanes, driven=driven))
+    n = jax.tree_util.tree_leaves(loadings)[0].shape[0]
+    if initial is None:  # rest, given explicitly: the one-period calls' program (initial set)
+        initial = to_host(_REST(actuator, loadings))
+    res = to_host(settle(settle_budget(actuator, warmup, tol), loadings, initial,
+                         np.ones(n, bool) if active is None else active, control=control,
+                         pools=settle_pools(n // len(devices), lanes), driven=driven))
     out = {k: np.asarray(getattr(res, k)) for k in PER_CELL}
     final = res.final_state
     y = res.final_state
@@ -271,4 +309,5 @@ def step_residual(y: ConeState, step: jax.Array) -> jax.Array:
 
 
 _SETTLE = eqx.filter_jit(_settle)
+_REST = eqx.filter_jit(rest_states)
 _SHOOT = eqx.filter_jit(shoot_period)
