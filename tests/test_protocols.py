@@ -320,3 +320,37 @@ def test_neighbour_warm_starts_equal_the_from_rest_map(model):
     with pytest.raises(jaxdea.SweepError, match="a sweep \\(one payload\\) has none"):
         jaxdea.sweep(model, mass=2e-3, damping=0.1, freq=[60.0],
                      protocol=jaxdea.Periodic(start="neighbour"))
+
+
+def test_a_chord_period_runs_in_the_settling_program(model):
+    """A chord iteration's period (``periodic.one_period``) is the settling program with a
+    budget of one period: after a from-rest ``periodic_cells`` on the same cells it compiles
+    nothing, and it gives what one strict period of the papers' protocol gives from the same
+    states (the metrics of that period, its final state, status 0)."""
+    import equinox as eqx
+
+    from jaxdea.engine.lanes import run_protocol
+    from jaxdea.engine.periodic import one_period, settle_pools, settle_program
+    from jaxdea.engine.sharding import to_host
+
+    loads = make_loadings(model, 1e-2, 0.1, FREQ)
+    settled = to_host(periodic_cells(model.actuator, loads, lanes=3))
+    start = settled.final_state
+    compiles = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda name, secs, **_: compiles.append(name) if name.startswith("/jax/core/compile")
+        else None)
+    first = len(compiles)
+    got = one_period(settle_program(tuple(jax.devices()[:1])), model.actuator, loads, start,
+                     np.array([True, False, True]), control=jaxdea.StepControl(),
+                     pools=settle_pools(3, 3), driven=None)
+    assert compiles[first:] == []  # the program periodic_cells compiled
+    ref = to_host(eqx.filter_jit(run_protocol)(model.actuator, loads, cycles=1, average=1,
+                                               initial=start, pools=(3,)))
+    np.testing.assert_array_equal(got.status, [0, 0, 0])
+    for k in ("P_out", "P_in", "amplitude", "steps"):
+        np.testing.assert_allclose(getattr(got, k)[[0, 2]], getattr(ref, k)[[0, 2]],
+                                   rtol=1e-12, err_msg=k)
+    np.testing.assert_allclose(flatten_dynamical(got.final_state)[[0, 2]],
+                               flatten_dynamical(ref.final_state)[[0, 2]], rtol=1e-12)
+    assert got.steps[1] == 0  # an inactive cell is not run
