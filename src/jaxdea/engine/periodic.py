@@ -97,8 +97,22 @@ def settle_budget(actuator, cycles: int, tol: float):
 
 def one_period(program, actuator, loadings, initial, active, *, control, pools, driven):
     """One plain period of the ``active`` cells from ``initial`` with the settling
-    ``program`` (:func:`settle_program`): host :class:`CycleMetrics`, status 0 where the
-    period went well."""
+    ``program``: the chord iterations' period (:mod:`jaxdea.engine.chord`).
+
+    **Arguments:**
+
+    - `program`: :func:`settle_program` of the devices the cells are split over.
+    - `actuator`, `loadings`: the model and the cells (leading axis).
+    - `initial`: host start states, one per cell.
+    - `active`: bool per cell; the others are skipped at no cost.
+    - `control`, `pools`, `driven`: as for the from-rest settling (:func:`settle_pools`), so
+      that the call reuses its compiled program.
+
+    **Returns:**
+
+    Host :class:`CycleMetrics` of that period, status 0 where it went well (the program's
+    status 4, "not settled", is what a one-period budget always ends in).
+    """
     r = to_host(program(settle_budget(actuator, 1, 0.0), loadings, initial, active,
                         control=control, pools=pools, driven=driven))
     return eqx.tree_at(lambda m: m.status, r, np.where(r.status == 4, 0, r.status))
