@@ -25,10 +25,15 @@ def test_optimise_writes_a_config_no_worse_than_its_start(tmp_path, capsys):
     t0 = time.perf_counter()
     rc = main([*BASE, "--objective", "power", "--freq", "80", "--starts", "2", "--maxiter", "2",
                "--out", str(out), "--plot", str(png)])
-    text = capsys.readouterr().out
+    captured = capsys.readouterr()
+    text = captured.out
     with capsys.disabled():  # shown with -s
         print(f"\noptimise CLI run: {time.perf_counter() - t0:.1f} s\n{text}")
     assert rc == 0, text
+    # a progress bar on stderr over the evaluations (screening, 2 iterations at most, the
+    # final solve from rest), with the best objective so far (W)
+    bar = captured.err.replace("\r", "\n")
+    assert re.search(r"optimise: +100%.* [34]/[34] .*best objective \d", bar), bar[-500:]
     k = jaxdea.load_config(out).actuator.spring_stiffness
     printed = float(re.search(r"actuator\.spring_stiffness = (\S+)", text).group(1))
     assert 300.0 <= k <= 600.0

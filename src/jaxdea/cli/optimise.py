@@ -153,7 +153,7 @@ def _optimise(args) -> int:
                              payload=payload,
                              band=band, freq=args.freq, drive=args.drive, phase=args.phase,
                              max_field=args.max_field, starts=args.starts, seed=args.seed,
-                             maxiter=args.maxiter)
+                             maxiter=args.maxiter, progress=not args.no_progress)
     result.to_toml(out)
     jaxdea.load_config(out)  # loads like any other config
     print(f"wrote {out}")
@@ -214,5 +214,6 @@ def add_parsers(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     o.add_argument("--maxiter", type=int, default=20, help="most ascent iterations")
     o.add_argument("--out", required=True, help="optimised config (.toml)")
     o.add_argument("--plot", help="optional PNG: the objective of every start per iteration")
+    o.add_argument("--no-progress", action="store_true", help="no progress bar")
     o.set_defaults(func=_optimise)
     return o

@@ -147,7 +147,8 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
              damping=None, payload=None, band=None, freq=None, drive: str = "A", phase=None,
              max_field: float = 80e6, starts: int = 8, seed: int = 0, x0: dict | None = None,
              maxiter: int = 20, gtol: float = 1e-3, settings: Steady = DESIGN_STEADY,
-             grid: int = 8, refine: int = 6, devices: tuple | None = None) -> OptimiseResult:
+             grid: int = 8, refine: int = 6, devices: tuple | None = None,
+             progress: bool = True) -> OptimiseResult:
     """Maximise steady-state power (or efficiency, or any objective) over bounded parameters.
 
     **Arguments:**
@@ -172,6 +173,8 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
     - `settings`, `grid`, `refine`: the periodic solve and the peak search.
     - `devices`: the JAX devices the starts are split over (each runs its share to the end;
       default: every local device, e.g. one per core after :func:`jaxdea.use_cpu_cores`).
+    - `progress`: a progress bar over the evaluations (the screening of the starts, each
+      iteration, the final solve from rest), with the best objective so far.
 
     Each iteration continues every start's orbits from its last accepted design (the
     settling stage then starts next to the new orbit); the returned design's objective is
@@ -239,54 +242,13 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
 
     x = _pull_inside(np.clip(u, 0.0, 1.0), fields, max_field)
     e = fields(x)
-    # screening: every start in one batched call; `here`: the orbits of the designs x
-    # (continuation's start)
-    val, g, fpk, bad, here, met = evaluate(x)
-    start_val = float(val[0])
-    feasible = (e <= max_field) & ~bad
-    val = np.where(feasible, val, -np.inf)  # infeasible starts are dropped
-    history = [val.copy()]
-    path = [lo + x * (hi - lo)]
-    alpha = 0.1 / np.maximum(np.max(np.abs(g), axis=1), 1e-300)
-    done = ~feasible  # infeasible starts are dropped
-    stopped = np.where(feasible, "maxiter", "infeasible").astype(object)
-    limited = np.zeros(starts, bool)
-    for _ in range(int(maxiter)):
-        pg = _projected(x, g)
-        small = ~done & (np.max(np.abs(pg), axis=1) <= gtol * np.abs(val))
-        stopped[small] = "gradient"
-        done |= small
-        if done.all():
-            break
-        prop = x.copy()
-        for k in np.nonzero(~done)[0]:
-            a = alpha[k]
-            for _h in range(40):
-                prop[k] = np.clip(x[k] + a * g[k], 0.0, 1.0)
-                if fields(prop[k:k + 1])[0] <= max_field:
-                    break
-                a, limited[k] = 0.5 * a, True
-            alpha[k] = a
-        v2, g2, f2, b2, there, met = evaluate(prop, here)
-        better = ~done & ~b2 & (v2 >= val)
-        if here is not None:
-            here = jax.tree_util.tree_map(lambda a, b: np.where(
-                better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), there, here)
-        s, yv = prop - x, -(g2 - g)
-        sy = np.sum(s * yv, axis=1)
-        bb = np.where(sy > 0, np.sum(s * s, axis=1) / np.where(sy > 0, sy, 1.0), 2 * alpha)
-        alpha = np.where(better, np.clip(bb, 1e-3 * alpha, 1e3 * alpha),
-                         np.where(done, alpha, 0.25 * alpha))
-        x = np.where(better[:, None], prop, x)
-        val, g = np.where(better, v2, val), np.where(better[:, None], g2, g)
-        fpk = None if fpk is None else np.where(better, f2, fpk)
-        short = ~done & (alpha * np.max(np.abs(g), axis=1) < 1e-7)
-        stopped[short] = "step"
-        done |= short
-        history.append(val.copy())
-        path.append(lo + x * (hi - lo))
-    if len(history) > 1:  # the orbits were continued: report the steady states from rest
-        val, g, fpk, _, _, met = evaluate(x)
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=int(maxiter) + 2, desc="optimise", unit="evaluation",
+               disable=not progress)
+    with bar:
+        x, val, g, fpk, met, history, path, stopped, start_val = _search(
+            evaluate, fields, x, e, lo, hi, max_field, maxiter, gtol, bar)
     e = fields(x)
     ok = (e <= max_field) & np.isfinite(val)
     if not ok.any():
@@ -308,6 +270,81 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
         gradient=dict(zip(keys, map(float, g[k] / (hi - lo)))), active=active,
         field=float(e[k]), start_objective=start_val, history=history, path=path,
         metrics=metrics, stopped=str(stopped[k]))
+
+
+def _search(evaluate, fields, x, e, lo, hi, max_field, maxiter, gtol, bar):
+    """:func:`optimise`'s multi-start projected gradient ascent in the unit box, from the
+    starts ``x`` (nominal fields ``e``): the screening, at most ``maxiter`` iterations (a
+    Barzilai-Borwein step per start, halved until the design is within ``max_field``, kept
+    if the objective did not fall), then every start solved from rest again. ``bar``
+    advances once per evaluation.
+
+    **Returns:**
+
+    ``(x, val, g, fpk, met, history, path, stopped, start_val)``: the designs, their
+    objectives, unit-box gradients, peak frequencies and metrics, the objectives and
+    designs per iteration, why each start stopped, and the first start's objective.
+    """
+    # screening: every start in one batched call; `here`: the orbits of the designs x
+    # (continuation's start)
+    val, g, fpk, bad, here, met = evaluate(x)
+    start_val = float(val[0])
+    feasible = (e <= max_field) & ~bad
+    val = np.where(feasible, val, -np.inf)  # infeasible starts are dropped
+    _advance(bar, val)
+    history = [val.copy()]
+    path = [lo + x * (hi - lo)]
+    alpha = 0.1 / np.maximum(np.max(np.abs(g), axis=1), 1e-300)
+    done = ~feasible  # infeasible starts are dropped
+    stopped = np.where(feasible, "maxiter", "infeasible").astype(object)
+    for _ in range(int(maxiter)):
+        pg = _projected(x, g)
+        small = ~done & (np.max(np.abs(pg), axis=1) <= gtol * np.abs(val))
+        stopped[small] = "gradient"
+        done |= small
+        if done.all():
+            break
+        prop = x.copy()
+        for k in np.nonzero(~done)[0]:
+            a = alpha[k]
+            for _h in range(40):
+                prop[k] = np.clip(x[k] + a * g[k], 0.0, 1.0)
+                if fields(prop[k:k + 1])[0] <= max_field:
+                    break
+                a = 0.5 * a
+            alpha[k] = a
+        v2, g2, f2, b2, there, met = evaluate(prop, here)
+        better = ~done & ~b2 & (v2 >= val)
+        if here is not None:
+            here = jax.tree_util.tree_map(lambda a, b: np.where(
+                better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), there, here)
+        s, yv = prop - x, -(g2 - g)
+        sy = np.sum(s * yv, axis=1)
+        bb = np.where(sy > 0, np.sum(s * s, axis=1) / np.where(sy > 0, sy, 1.0), 2 * alpha)
+        alpha = np.where(better, np.clip(bb, 1e-3 * alpha, 1e3 * alpha),
+                         np.where(done, alpha, 0.25 * alpha))
+        x = np.where(better[:, None], prop, x)
+        val, g = np.where(better, v2, val), np.where(better[:, None], g2, g)
+        fpk = None if fpk is None else np.where(better, f2, fpk)
+        short = ~done & (alpha * np.max(np.abs(g), axis=1) < 1e-7)
+        stopped[short] = "step"
+        done |= short
+        history.append(val.copy())
+        path.append(lo + x * (hi - lo))
+        _advance(bar, val)
+    bar.total = bar.n + (len(history) > 1)  # every start may stop before maxiter
+    if len(history) > 1:  # the orbits were continued: report the steady states from rest
+        val, g, fpk, _, _, met = evaluate(x)
+        _advance(bar, val)
+    return x, val, g, fpk, met, history, path, stopped, start_val
+
+
+def _advance(bar, val):
+    """One evaluation done: the bar moves on and shows the best objective so far."""
+    best = np.max(val) if np.size(val) else -np.inf
+    bar.set_postfix_str(f"best objective {best:.6g}" if np.isfinite(best)
+                        else "no feasible start yet", refresh=False)
+    bar.update(1)
 
 
 def _pull_inside(x, fields, max_field):
