@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 import tomllib
 from pathlib import Path
 
@@ -418,13 +419,17 @@ def test_cli_calibrate_writes_loadable_config_and_plot(tmp_path, capsys):
                "--method", "de", "--popsize", "8", "--maxiter", "3", "--cycles", "12",
                "--average", "4", "--seed", "3", "--no-curvature", "--out", str(out),
                "--plot", str(png)])
-    assert rc == 0, capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    # a progress bar over the generations (3 here) with the best loss, on stderr
+    bar = captured.err.replace("\r", "\n")
+    assert re.search(r"calibrate \(de\): +100%.* 3/3 .*loss \d", bar), bar[-500:]
     fitted = jaxdea.load_config(out)
     tau = float(fitted.actuator.membrane.dielectric.tau)
     assert 2e-4 <= tau <= 2e-2 and tau != 2e-3  # inside the default decade box, changed
     assert tomllib.loads(out.read_text())["membrane"]["dielectric"]["tau"] == tau
     assert png.read_bytes()[:4] == b"\x89PNG"
-    assert "e_rms" in capsys.readouterr().out
+    assert "e_rms" in captured.out
 
 
 @pytest.mark.parametrize("args, message", [

@@ -177,7 +177,7 @@ def calibrate(model, data: Data, fit, *, bounds=None,
               predict: Callable | None = None, transforms=None, jac: str = "auto",
               maxiter: int | None = None, learning_rate: float = 0.05, tol: float = 1e-10,
               de_options=None, curvature: bool = True, flat_threshold: float = 0.5,
-              verbose: bool = False, payload=None) -> CalibrationResult:
+              verbose: bool = False, payload=None, progress: bool = True) -> CalibrationResult:
     """Fit the parameters ``fit`` of ``model`` to ``data``.
 
     **Arguments:**
@@ -208,6 +208,8 @@ def calibrate(model, data: Data, fit, *, bounds=None,
     - `flat_threshold`: a relative 1-sigma above which a parameter is reported as not
       identified (``result.flat``).
     - `verbose`: print progress.
+    - `progress`: a progress bar over the optimiser's iterations (generations for DE), with
+      the loss.
     - `payload`: the payload law the data were measured with (:class:`jaxdea.Drag`, ... or
       a sum; cone models and frequency responses only): the data's ``mass`` column is its
       mass and its ``damping`` column is not used. Its parameters can be fitted as
@@ -255,7 +257,12 @@ def calibrate(model, data: Data, fit, *, bounds=None,
     if isinstance(method, str):
         method = optimiser_for(method, maxiter=maxiter, learning_rate=learning_rate, tol=tol,
                                de_options=de_options)
-    sol = method.minimise(obj, jac=jac, seed=seed, verbose=verbose)
+    from tqdm.auto import tqdm
+
+    with tqdm(total=method.budget, desc=f"calibrate ({method.name})", unit="iteration",
+              disable=not progress) as bar:
+        sol = method.minimise(obj, jac=jac, seed=seed, verbose=verbose, bar=bar)
+        bar.total = bar.n  # a run that converged before its budget ends at 100 %
     wall = time.perf_counter() - t0
 
     z, theta = sol.z, sol.theta

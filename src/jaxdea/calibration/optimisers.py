@@ -47,6 +47,16 @@ class Progress:
     n_evals: int = 0  #: model evaluations (a DE population counts as its size)
     n_grads: int = 0  #: of which with a gradient
     history: list[float] = field(default_factory=list)  #: loss per iteration / generation
+    #: a progress bar (``tqdm``-like) advanced by :meth:`record`, or None
+    bar: Any = field(default=None, repr=False, compare=False)
+
+    def record(self, loss: float) -> None:
+        """One iteration (generation) done with ``loss``: kept in :attr:`history`, and the
+        bar moves on showing it."""
+        self.history.append(loss)
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"loss {loss:.6g}", refresh=False)
+            self.bar.update(1)
 
 
 @dataclass(frozen=True)
@@ -67,9 +77,14 @@ class AbstractOptimiser(abc.ABC):
     #: True: searches the box of the bounds, which must then be finite
     searches_box: ClassVar[bool] = False
 
+    @property
+    def budget(self) -> int:
+        """Most iterations (generations, evaluations): the length of a progress bar."""
+        return int(getattr(self, "maxiter"))
+
     @abc.abstractmethod
     def minimise(self, obj: Objective, *, jac: str, seed: int = 0,
-                 verbose: bool = False) -> Solution:
+                 verbose: bool = False, bar=None) -> Solution:
         """Minimise the loss of ``obj``.
 
         **Arguments:**
@@ -78,6 +93,7 @@ class AbstractOptimiser(abc.ABC):
         - `jac`: ``"fwd"`` or ``"rev"``: how derivatives are taken.
         - `seed`: random seed (stochastic optimisers).
         - `verbose`: print progress.
+        - `bar`: a progress bar (``tqdm``-like), advanced once per :attr:`budget` unit.
 
         **Returns:**
 
@@ -110,11 +126,15 @@ class LBFGS(AbstractOptimiser):
     maxcor: int = 20
     name: ClassVar[str] = "lbfgs"
 
+    @property
+    def budget(self) -> int:
+        return int(self.maxiter) + 1  # the start, then each iteration
+
     def minimise(self, obj: Objective, *, jac: str, seed: int = 0,
-                 verbose: bool = False) -> Solution:
+                 verbose: bool = False, bar=None) -> Solution:
         from scipy.optimize import minimize
 
-        state = Progress()
+        state = Progress(bar=bar)
         maxiter = self.maxiter
         z0 = obj.z0()
         f0, g0 = obj.value_and_grad(z0, jac)
@@ -123,7 +143,7 @@ class LBFGS(AbstractOptimiser):
         if not (math.isfinite(f0) and np.all(np.isfinite(g0))):
             raise _diverged("lbfgs", 1, f"loss = {f0} / non-finite gradient at the start", obj,
                             z0, "check the start values and the data")
-        state.history.append(f0)
+        state.record(f0)
         # scipy sees the loss relative to the start: its ftol (absolute below 1) is then relative
         scale = abs(f0) if f0 != 0 else 1.0
         penalty = 1e6
@@ -143,7 +163,7 @@ class LBFGS(AbstractOptimiser):
             return f / scale, g / scale
 
         def cb(intermediate_result):
-            state.history.append(float(intermediate_result.fun) * scale)
+            state.record(float(intermediate_result.fun) * scale)
             if verbose:
                 print(f"lbfgs it {len(state.history) - 1}: loss {state.history[-1]:.6g}")
 
@@ -175,10 +195,10 @@ class Adam(AbstractOptimiser):
     name: ClassVar[str] = "adam"
 
     def minimise(self, obj: Objective, *, jac: str, seed: int = 0,
-                 verbose: bool = False) -> Solution:
+                 verbose: bool = False, bar=None) -> Solution:
         import optax
 
-        state = Progress()
+        state = Progress(bar=bar)
         lr, tol = self.learning_rate, self.tol
         opt = optax.adam(lr)
         z = jnp.asarray(obj.z0())
@@ -192,7 +212,7 @@ class Adam(AbstractOptimiser):
             if not (math.isfinite(f) and np.all(np.isfinite(g))):
                 raise _diverged("adam", state.n_evals, f"loss = {f}", obj, z,
                                 f"lower learning_rate (now {lr:g}) or tighten the bounds")
-            state.history.append(f)
+            state.record(f)
             if f < best[0] * (1 - tol):
                 stall = 0
             else:
@@ -225,10 +245,10 @@ class LM(AbstractOptimiser):
     name: ClassVar[str] = "lm"
 
     def minimise(self, obj: Objective, *, jac: str, seed: int = 0,
-                 verbose: bool = False) -> Solution:
+                 verbose: bool = False, bar=None) -> Solution:
         from scipy.optimize import least_squares
 
-        state = Progress()
+        state = Progress(bar=bar)
         cache = {}
         bad = {"run": 0}
 
@@ -249,7 +269,7 @@ class LM(AbstractOptimiser):
                     J = np.nan_to_num(J)
                 cache.clear()
                 cache[key] = (r, J)
-                state.history.append(float(r @ r))
+                state.record(float(r @ r))
             return cache[key]
 
         res = least_squares(lambda z: both(z)[0], obj.z0(), jac=lambda z: both(z)[1],
@@ -295,6 +315,10 @@ class DE(AbstractOptimiser):
     name: ClassVar[str] = "de"
     searches_box: ClassVar[bool] = True
 
+    @property
+    def budget(self) -> int:
+        return int(self.generations)
+
     def __post_init__(self):
         pop = int(self.population)
         if pop < 5:
@@ -330,11 +354,11 @@ class DE(AbstractOptimiser):
                    strategy=o["strategy"], tol=o["tol"], atol=o["atol"], init=o.get("init"))
 
     def minimise(self, obj: Objective, *, jac: str = "fwd", seed: int = 0,
-                 verbose: bool = False) -> Solution:
+                 verbose: bool = False, bar=None) -> Solution:
         from scipy.optimize import differential_evolution
         from scipy.stats import qmc
 
-        state = Progress()
+        state = Progress(bar=bar)
         lo = np.array([p.ulo for p in obj.params])
         hi = np.array([p.uhi for p in obj.params])
         n = len(obj.params)
@@ -352,7 +376,7 @@ class DE(AbstractOptimiser):
             return np.where(np.isfinite(vals), vals, np.inf)
 
         def cb(intermediate_result):
-            state.history.append(float(intermediate_result.fun))
+            state.record(float(intermediate_result.fun))
             if verbose:
                 print(f"de generation {len(state.history)}: best loss "
                       f"{intermediate_result.fun:.6g}")

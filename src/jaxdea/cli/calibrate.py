@@ -90,7 +90,8 @@ def _calibrate(args) -> int:
           flush=True)
     res = calibrate(model, data, fit, bounds=bounds or None, method=args.method,
                     loss=args.loss, seed=args.seed, predict=predict, maxiter=args.maxiter,
-                    de_options=de_options, curvature=not args.no_curvature, payload=payload)
+                    de_options=de_options, curvature=not args.no_curvature, payload=payload,
+                    progress=not args.no_progress)
     print(res.summary())
     header = (f"fitted by: jaxdea calibrate --method {args.method} --loss {args.loss} "
               f"--data {args.data}\nloss {res.loss:.6g}, e_rms {res.e_rms:.3g} %, "
@@ -133,5 +134,6 @@ def add_parsers(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="fitted config (.toml; fitted payload-law "
                    "values, --fit payload.NAME, go to its [payload] table)")
     c.add_argument("--plot", help="optional PNG: measured vs model")
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=_calibrate)
     return c
