@@ -8,8 +8,8 @@ wings, see ``docs/architecture.md``). Everything not exported here may change.
 - config: :func:`load_config` -> a validated model (TOML, SI units)
 - engine: the lane engine (:func:`run_protocol`), step control, cycle metrics, status codes,
   :func:`use_cpu_cores`, :func:`use_compile_cache`
-- studies: :func:`sweep`, :func:`powermap`, :func:`simulate`, :func:`transient`,
-  :func:`rotary_study`
+- studies: :func:`sweep`, :func:`powermap` (and :func:`open_map` to read one back),
+  :func:`simulate`, :func:`transient`, :func:`rotary_study`
 - calibration: :func:`calibrate` and measured data (:func:`load_data`)
 
 Importing jaxdea switches on ``jax_enable_x64`` and changes no other global JAX state (a test
@@ -56,6 +56,7 @@ from .engine.step_control import StepControl  # noqa: E402
 # studies
 from .studies.design import design_map, peak_power, steady_objectives  # noqa: E402
 from .studies.loadings import make_loadings  # noqa: E402
+from .studies.mapstore import open_map  # noqa: E402
 from .studies.optimise import OptimiseResult, optimise  # noqa: E402
 from .studies.powermap import powermap  # noqa: E402
 from .studies.rotary import rotary_study  # noqa: E402
@@ -90,7 +91,7 @@ __all__ = [
     "run_protocol", "use_compile_cache", "use_cpu_cores",
     # studies
     "OptimiseResult", "amplitude_frequency", "design_map", "displacement", "hysteresis_area",
-    "make_loadings", "optimise", "peak_power", "powermap", "rotary_study", "simulate",
+    "make_loadings", "open_map", "optimise", "peak_power", "powermap", "rotary_study", "simulate",
     "steady_objectives", "sweep", "transient",
     # calibration
     "CalibrationResult", "FrequencyResponse", "TimeSeries", "calibrate", "load_data",
