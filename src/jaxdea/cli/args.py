@@ -1,5 +1,5 @@
 """What every command shares: range and grid parsing, output-path checks, the protocol options,
-and atomic NetCDF writing."""
+atomic NetCDF writing, and the count of failed results by status code."""
 
 from __future__ import annotations
 
@@ -115,6 +115,15 @@ def parse_phases(text: str, name: str = "--phase") -> np.ndarray:
         raise ValueError(f"{name} is empty or inverted: MAX = {hi:g} <= MIN = {lo:g}")
     with np.errstate(all="ignore"):
         return _grid(lo + (hi - lo) * np.arange(n) / n, text, name)
+
+
+def print_status_counts(status, meanings: dict, what: str = "cell(s)") -> None:
+    """One line per non-zero status code: how many results have it and what it means
+    (``meanings``: code -> text, e.g. :data:`jaxdea.STATUS`)."""
+    status = np.asarray(status).ravel()
+    codes, counts = np.unique(status[status != 0], return_counts=True)
+    for k, n in zip(codes, counts):
+        print(f"  {n} {what} with status {k}: {meanings.get(int(k), 'unknown')}")
 
 
 def write_dataset(ds, out: Path) -> None:

@@ -18,6 +18,7 @@ from .args import (
     parse_phases,
     parse_points,
     parse_range,
+    print_status_counts,
     protocol_args,
     write_dataset,
 )
@@ -50,14 +51,14 @@ def _sweep(args) -> int:
                       tol=args.tol, early_exit=args.early_exit)
     write_dataset(ds, out)
     ok = (ds["status"].values == 0) & ds["steady"].values & np.isfinite(ds["P_out"].values)
-    bad = _failed(ds)
+    bad = int((ds["status"] != 0).sum())
     if ok.any():  # the maximum among the steady cells that finished (failed: nan/inf)
         i = int(np.argmax(np.where(ok, ds["P_out"].values, -np.inf)))
         print(f"wrote {out}: P_out max {1e3 * float(ds['P_out'][i]):.3f} mW at "
-              f"{float(ds['f'][i]):g} Hz (steady cells); {bad}")
+              f"{float(ds['f'][i]):g} Hz (steady cells); {bad} failed cell(s)")
     else:
-        print(f"wrote {out}: no steady cell finished with status 0; {bad}")
-    _print_not_steady(ds)
+        print(f"wrote {out}: no steady cell finished with status 0; {bad} failed cell(s)")
+    _print_failed(ds)
     if args.plot:
         plot_sweep(ds, args.plot)
         print(f"wrote {args.plot}")
@@ -164,18 +165,13 @@ def _run_powermap(jaxdea, args, model, mass, damping, freq, phase, out, client=N
                            progress=not args.no_progress, client=client)
 
 
-def _failed(ds) -> str:
-    """``"N failed cell(s)"``, with how many of each status code (what it means), so that a
-    user sees at once whether the failures are lock-ups, blow-ups, step budgets or cells
-    that did not converge."""
+def _print_failed(ds) -> None:
+    """The failed cells by status code, with what each code means, then the finished cells
+    that are not steady."""
     from jaxdea.engine.metrics import STATUS
 
-    status = ds["status"].values.ravel()
-    codes, counts = np.unique(status[status != 0], return_counts=True)
-    kinds = ", ".join(f"{n} with status {c}: "
-                      + STATUS.get(int(c), "unknown").split(":")[0].split(" (")[0]
-                      for c, n in zip(codes, counts))
-    return f"{int(counts.sum())} failed cell(s)" + (f" ({kinds})" if kinds else "")
+    print_status_counts(ds["status"].values, STATUS)
+    _print_not_steady(ds)
 
 
 def _print_not_steady(ds) -> None:
@@ -193,7 +189,7 @@ def _print_not_steady(ds) -> None:
 def _summarise_map(ds, out, plot) -> int:
     from jaxdea.plotting import law_dim, plot_pmax
 
-    bad = _failed(ds)
+    bad = int((ds["status"] != 0).sum())
     pmax = ds["P_max"]
     if bool(pmax.notnull().any()):
         flat = int(np.argmax(np.nan_to_num(pmax.values, nan=-np.inf)))
@@ -204,10 +200,10 @@ def _summarise_map(ds, out, plot) -> int:
         print(f"wrote {out}: P_max (steady cells) {1e3 * float(pmax.isel(best)):.3f} mW at "
               f"M = {1e3 * at['M']:g} g, {law} = {at[law]:g} {unit}"
               + (f", phase = {at['phase']:g} rad" if "phase" in at else "")
-              + f", f = {float(ds['f_at_P_max'].isel(best)):g} Hz; {bad}")
+              + f", f = {float(ds['f_at_P_max'].isel(best)):g} Hz; {bad} failed cell(s)")
     else:
-        print(f"wrote {out}: no steady cell finished with status 0; {bad}")
-    _print_not_steady(ds)
+        print(f"wrote {out}: no steady cell finished with status 0; {bad} failed cell(s)")
+    _print_failed(ds)
     if plot and bool(pmax.notnull().any()):
         plot_pmax(ds, plot)
         print(f"wrote {plot}")

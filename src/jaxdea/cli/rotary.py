@@ -6,7 +6,7 @@ import argparse
 
 import numpy as np
 
-from .args import check_png, lin_points, netcdf_out, write_dataset
+from .args import check_png, lin_points, netcdf_out, print_status_counts, write_dataset
 
 
 def _rotary_study(args) -> int:
@@ -28,15 +28,13 @@ def _rotary_study(args) -> int:
     ds = jaxdea.rotary_study(model, ri, d)
     write_dataset(ds, out)
     th = ds["theta_deg"].values
-    bad = {int(k): int((ds["status"] == k).sum()) for k in np.unique(ds["status"]) if k != 0}
     if np.isfinite(th).any():
         i, j = np.unravel_index(int(np.nanargmax(th)), th.shape)
         print(f"wrote {out}: max theta {th[i, j]:.3f} deg at r_i = {1e3 * ri[i]:g} mm, "
               f"d = {1e3 * d[j]:g} mm")
     else:
         print(f"wrote {out}: no point with a stable equilibrium")
-    for k, n in bad.items():
-        print(f"  {n} point(s) with status {k}: {ROTARY_STATUS[k]}")
+    print_status_counts(ds["status"].values, ROTARY_STATUS, "point(s)")
     if args.plot:
         plot_rotary_study(ds, args.plot)
         print(f"wrote {args.plot}")

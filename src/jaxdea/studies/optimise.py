@@ -244,9 +244,8 @@ def optimise(model: Model, vary: dict, objective: str | Callable = "pmax", *, ma
     e = fields(x)
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=int(maxiter) + 2, desc="optimise", unit="evaluation",
-               disable=not progress)
-    with bar:
+    with tqdm(total=int(maxiter) + 2, desc="optimise", unit="evaluation",
+              disable=not progress) as bar:
         x, val, g, fpk, met, history, path, stopped, start_val = _search(
             evaluate, fields, x, e, lo, hi, max_field, maxiter, gtol, bar)
     e = fields(x)
