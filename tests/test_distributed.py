@@ -132,6 +132,17 @@ def test_cli_on_an_existing_scheduler_equals_the_single_process_map(small_ref, c
     _same_map(open_map(store), small_ref)
 
 
+
+def test_a_warm_started_map_on_the_cluster_equals_the_single_process_map(model, client):
+    """``start="neighbour"`` chunks (whole masses, a chain each) on the workers: the same map
+    bit for bit, its per-cell ``coexist`` flag included (carried in each chunk's receipt)."""
+    kw = dict(**_axes(SMALL), protocol="periodic", start="neighbour", chunk_cells=16,
+              progress=False)
+    ref = pm.powermap(model, **kw)
+    assert "coexist" in ref and (ref.status == 0).all()
+    _same_map(pm.powermap(model, **kw, client=client), ref)
+
+
 def test_cluster_chunk_rule():
     assert cluster_units(100_000, 1, 2, 4096) == 4096  # capped at the single-process chunk
     assert cluster_units(10_000, 1, 2, 4096) == 1250  # ~4 chunks per worker

@@ -311,6 +311,9 @@ def test_neighbour_warm_starts_equal_the_from_rest_map(model):
         warm.cycles_run.values
     low = dict(f=0)  # from rest in both: the same solve, the same numbers
     np.testing.assert_allclose(warm.P_out.isel(low), cold.P_out.isel(low), rtol=1e-12)
+    # one branch here: no cell has a second orbit, and only a warm-started map says so
+    assert warm.coexist.dtype == bool and not warm.coexist.any()
+    assert "coexist" not in cold and "another stable" in warm.coexist.attrs["long_name"]
     # a protocol object says the same, and the setting is checked before any compute
     assert jaxdea.Periodic(start="neighbour").start == "neighbour"
     with pytest.raises(jaxdea.SweepError, match="needs protocol='periodic'"):
@@ -320,6 +323,85 @@ def test_neighbour_warm_starts_equal_the_from_rest_map(model):
     with pytest.raises(jaxdea.SweepError, match="a sweep \\(one payload\\) has none"):
         jaxdea.sweep(model, mass=2e-3, damping=0.1, freq=[60.0],
                      protocol=jaxdea.Periodic(start="neighbour"))
+
+
+def test_a_warm_started_map_resumes_with_its_coexistence_flags(model, tmp_path, monkeypatch):
+    """A ``start="neighbour"`` map's per-cell ``coexist`` flag is part of each chunk's saved
+    part: a run interrupted after its first chunk resumes with that chunk's flags as saved
+    (here set by a stand-in for ``coexisting`` on the first cell of each chunk) and computes
+    the rest; the powers equal an uninterrupted run's."""
+    from jaxdea.engine.warmstart import REST_BELOW
+    from jaxdea.studies import distributed
+    from jaxdea.studies import powermap as pm
+
+    # the grid of test_neighbour_warm_starts_equal_the_from_rest_map, a mass per chunk
+    kw = dict(mass=[2e-3, 2.5e-3, 3e-3], damping=np.logspace(-1, 1, 5),
+              freq=[REST_BELOW / 2, 60.0, 110.0, 160.0], protocol="periodic",
+              start="neighbour", chunk_cells=20, progress=False)
+    ref = jaxdea.powermap(model, **kw)
+    assert ref.attrs["chunks_computed"] == 3 and not ref.coexist.any()
+    store = tmp_path / "map.zarr"
+    real_coexisting, real_run = distributed.coexisting, pm._run_chunk
+    calls = []
+
+    def mark_first(actuator, loadings, shape, results, **k):
+        flag, iterated = real_coexisting(actuator, loadings, shape, results, **k)
+        flag[0] = True
+        return flag, iterated
+
+    def stop_second(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_run(*a, **k)
+
+    monkeypatch.setattr(distributed, "coexisting", mark_first)
+    monkeypatch.setattr(pm, "_run_chunk", stop_second)
+    with pytest.raises(KeyboardInterrupt):
+        jaxdea.powermap(model, **kw, store=store)
+    assert len(list((tmp_path / "map.zarr.parts").glob("chunk_*.npz"))) == 1
+    monkeypatch.undo()
+    got = jaxdea.powermap(model, **kw, store=store, resume=True)
+    assert (got.attrs["chunks_computed"], got.attrs["chunks_reused"]) == (2, 1)
+    assert got.coexist.values[0, 0, 0] and got.coexist.sum() == 1  # chunk 0's mark
+    assert jaxdea.open_map(store).coexist.sum() == 1
+    for name in ("P_out", "P_in", "status"):
+        np.testing.assert_allclose(got[name], ref[name], rtol=1e-12, err_msg=name)
+
+
+def test_a_cell_off_its_neighbours_branch_is_flagged(model):
+    """``coexisting`` (issue 16): a cell whose orbit is not the one its mass neighbours'
+    orbits continue to is iterated from its neighbour's orbit, converges to another stable
+    orbit and is flagged, with that work added to its steps; its neighbours, iterated from
+    the odd orbit, converge back to their own and are not flagged. On the map's true orbits
+    (one branch, as the from-rest map confirms above) nothing is flagged. The odd orbit is
+    another frequency's (a stable orbit of this model, on no branch of this cell's)."""
+    import equinox as eqx
+
+    from jaxdea.engine.coexist import coexisting
+    from jaxdea.engine.sharding import to_host
+    from jaxdea.engine.warmstart import neighbour_chain
+
+    mass, damping, freq = np.array([2e-3, 2.5e-3, 3e-3, 3.5e-3]), np.logspace(-1, 1, 4), \
+        np.array([60.0, 110.0, 160.0])
+    shape = (mass.size, damping.size, freq.size)
+    loadings = make_loadings(model, mass[:, None, None], damping[None, :, None], freq)
+    res = to_host(neighbour_chain(model.actuator, loadings, shape))
+    assert (np.asarray(res.status) == 0).all()
+    flag, iterated = coexisting(model.actuator, loadings, shape, res)
+    assert not flag.any() and iterated.sum() <= 6, iterated.sum()  # few pass the screen
+
+    odd, other = (np.ravel_multi_index(i, shape) for i in ((2, 1, 1), (2, 1, 2)))
+    flat = np.asarray(flatten_dynamical(res.final_state))
+    flat[odd] = flat[other]
+    res = eqx.tree_at(lambda r: r.final_state, res, with_dynamical(res.final_state, flat))
+    steps = np.asarray(res.steps).copy()
+    flag, iterated = coexisting(model.actuator, loadings, shape, res)
+    assert np.nonzero(flag)[0].tolist() == [odd]
+    after = np.ravel_multi_index((3, 1, 1), shape)  # its partner is the odd cell
+    assert iterated[[odd, after]].all()
+    assert (np.asarray(res.steps)[iterated] > steps[iterated]).all()
+    assert (np.asarray(res.steps)[~iterated] == steps[~iterated]).all()
 
 
 def test_a_chord_period_runs_in_the_settling_program(model):

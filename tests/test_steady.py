@@ -172,6 +172,11 @@ def test_cli_summary_counts_not_steady_cells(tmp_path, capsys):
     assert f"\n  2 cell(s) with status 4: {jaxdea.STATUS[4]}\n" in out
     assert (f"1 cell(s) not steady (periodicity residual above {STEADY_RESIDUAL:g}): their "
             "averages are not a steady-state power") in out
+    assert "second stable orbit" not in out  # a map from rest has no coexist variable
+    ds["coexist"] = ds["steady"] & (ds["status"] == 4)  # two cells flagged
+    assert _summarise_map(pm.reduce_over_f(ds), tmp_path / "x.nc", None) == 0
+    assert ("2 cell(s) with a second stable orbit (variable 'coexist'): the map reports the "
+            "branch continued from the heavier loads") in capsys.readouterr().out
 
 
 def test_newton_solve_survives_singular_and_non_finite_cells():

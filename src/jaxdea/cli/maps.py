@@ -172,6 +172,7 @@ def _print_failed(ds) -> None:
 
     print_status_counts(ds["status"].values, STATUS)
     _print_not_steady(ds)
+    _print_coexisting(ds)
 
 
 def _print_not_steady(ds) -> None:
@@ -184,6 +185,17 @@ def _print_not_steady(ds) -> None:
     if n:
         print(f"{n} cell(s) not steady (periodicity residual above {STEADY_RESIDUAL:g}): their "
               "averages are not a steady-state power")
+
+
+def _print_coexisting(ds) -> None:
+    """The count of cells of a warm-started map where a second stable orbit was found."""
+    if "coexist" not in ds:  # from rest, or an older store
+        return
+    n = int(ds["coexist"].sum())
+    if n:
+        print(f"{n} cell(s) with a second stable orbit (variable 'coexist'): the map reports "
+              "the branch continued from the heavier loads; --start rest gives the from-rest "
+              "orbits")
 
 
 def _summarise_map(ds, out, plot) -> int:

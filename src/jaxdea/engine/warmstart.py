@@ -302,6 +302,24 @@ def _blank(like, n: int):
         lambda a: np.zeros((n,) + np.shape(a)[1:], np.asarray(a).dtype), like)
 
 
+def chain_layout(freq: np.ndarray, shape: tuple[int, int, int],
+                 n_dev: int) -> tuple[np.ndarray, np.ndarray]:
+    """The chain's columns over a block of cells in C order ``shape = (blocks, n_chain,
+    rest)`` with frequencies ``freq``, and their slot order on ``n_dev`` devices.
+
+    Returns ``(columns, order)``: ``columns[i, j]`` is the cell of column ``i`` at stage
+    ``j`` (a column per cell of stage 0 at or above :data:`REST_BELOW`; the other cells are
+    solved from rest), and ``order`` the columns' slots (:func:`stage_order`: its length
+    is the size of every stage's calls)."""
+    blocks, n_chain, rest = (int(k) for k in shape)
+    first = np.arange(blocks * n_chain * rest).reshape(blocks, n_chain, rest)[:, 0, :].ravel()
+    chained = first[freq[first] >= REST_BELOW]  # stage 0's cells at or above REST_BELOW
+    columns = chained[:, None] + rest * np.arange(n_chain)  # (column, stage) -> cell
+    block = chained // (n_chain * rest)  # each column's block (mass)
+    order = stage_order(freq[chained], block, n_dev) if chained.size else np.zeros(0, int)
+    return columns, order
+
+
 def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int, int, int], *,
                     tol: float = 1e-6, control: StepControl = StepControl(),
                     devices: tuple | None = None, driven=None) -> CycleMetrics:
@@ -334,14 +352,11 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     actuator = replicated(actuator, devices)  # on every device once, not once per call
     blocks, n_chain, rest = (int(k) for k in shape)
     n = blocks * n_chain * rest
-    idx = np.arange(n).reshape(blocks, n_chain, rest)
     freq = np.asarray(loadings.drive.frequency)
-    first = idx[:, 0, :].ravel()
-    chained = first[freq[first] >= REST_BELOW]  # stage 0's cells at or above REST_BELOW
-    columns = chained[:, None] + rest * np.arange(n_chain)  # (column, stage) -> cell
+    columns, order = chain_layout(freq, (blocks, n_chain, rest), n_dev)
+    chained = columns[:, 0]
     rest_cells = np.setdiff1d(np.arange(n), columns.ravel())
     block = chained // (n_chain * rest)  # each column's block (mass)
-    order = stage_order(freq[chained], block, n_dev) if chained.size else np.zeros(0, int)
     keep = np.unique(order, return_index=True)[1]  # one slot per cell (padding repeats one)
     # each slot's neighbour in the block before (same frequency and phase), for the first
     # stage's continuation along the blocks

@@ -38,12 +38,13 @@ from ..engine.batch import (
     run_from_rest,
     take_cells,
 )
+from ..engine.coexist import coexisting
 from ..engine.sharding import cell_sharded, use_cpu_cores
 from ..engine.warmstart import neighbour_chain
 from ..models.cone import Loading, Model
 from .loadings import Grid
 from .mapstore import Parts
-from .sweep import VARIABLES
+from .sweep import VARIABLES, map_variables
 
 #: Cluster chunk rule (paper and periodic): about this many chunks per worker, so that the
 #: queue balances (a worker that gets slow chunks takes fewer) and a lost worker loses
@@ -70,11 +71,15 @@ def run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, succ
         n_chain, rest = chain
         blocks = -(-int(real) // (n_chain * rest))
         cells = np.arange(blocks * n_chain * rest)
-        res = neighbour_chain(model.actuator, take_cells(loadings, cells),
-                              (blocks, n_chain, rest), tol=tol, control=control,
-                              devices=devices, driven=driven_membranes(loadings))
+        kw = dict(tol=tol, control=control, devices=devices,
+                  driven=driven_membranes(loadings))
+        mine, shape = take_cells(loadings, cells), (blocks, n_chain, rest)
+        res = neighbour_chain(model.actuator, mine, shape, **kw)
+        two, _ = coexisting(model.actuator, mine, shape, res, **kw)
         pad = np.minimum(np.arange(loadings.drive.frequency.shape[0]), cells.size - 1)
-        return {k: np.asarray(getattr(res, k))[pad] for k in VARIABLES}
+        out = {k: np.asarray(getattr(res, k)) for k in VARIABLES}
+        out["coexist"] = two
+        return {k: v[pad] for k, v in out.items()}
     if protocol == "continuation" and len(devices) > 1:  # whole chains per device slice
         res = cell_sharded(run_from_rest, devices)(
             model.actuator, loadings, jnp.asarray(np.tile(successor, len(devices)), jnp.int32),
@@ -103,6 +108,11 @@ class ChunkJob:
 
     def cells(self, i: int) -> tuple[int, int]:
         return i * self.chunk, min((i + 1) * self.chunk, self.n_cells)
+
+    @property
+    def variables(self) -> dict[str, tuple[str, str]]:
+        """The per-cell variables of each chunk (:func:`~jaxdea.studies.sweep.map_variables`)."""
+        return map_variables("neighbour" if self.run.get("chain") is not None else "rest")
 
 
 def compute_part(job: ChunkJob, i: int) -> dict[str, Any]:
@@ -206,7 +216,7 @@ def run_on_cluster(client, job: ChunkJob, order: list[int], results: dict[str, n
             if job.parts is None:
                 got = receipt["arrays"]
             else:
-                got = job.parts.load(i, hi - lo, VARIABLES, cells=(lo, hi),
+                got = job.parts.load(i, hi - lo, job.variables, cells=(lo, hi),
                                      sha256=receipt["sha256"])
             if got is None:
                 if tries[i] >= max_tries:
@@ -216,7 +226,7 @@ def run_on_cluster(client, job: ChunkJob, order: list[int], results: dict[str, n
                 futures.append(fut)
                 queue.add(fut)
                 continue
-            for k in VARIABLES:
+            for k in job.variables:
                 results[k][lo:hi] = got[k]
             done += 1
             if on_done is not None:

@@ -84,7 +84,7 @@ from .mapstore import (
     previous_chunk_cells,
     write_store,
 )
-from .sweep import P_OUT_MEANING, VARIABLES, to_dataset
+from .sweep import P_OUT_MEANING, map_variables, to_dataset
 
 #: Default chunk size per device: large enough that the lane pools stay busy while a
 #: low-frequency cell that never settles runs its 100 cycles (~3e5 steps at 1 Hz, against
@@ -110,7 +110,7 @@ NEIGHBOUR_STAGE_PER_DEVICE = 2048
 #: estimated: three 112-byte DCDEA-LS states, its loading and the step's stages).
 ACCELERATOR_CHUNK_PER_DEVICE = 2**18
 ACCELERATOR_STAGE_PER_DEVICE = 2**15
-_BYTES_PER_CELL = 8 * len(VARIABLES)
+_BYTES_PER_CELL = 8 * len(map_variables("neighbour"))
 
 
 def _axis(name: str, values, *, positive: bool = False, nonnegative: bool = False) -> np.ndarray:
@@ -259,7 +259,9 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
     f[, phase])) and variables P_out, P_in, P_in_signed,
     efficiency, amplitude, v_rms, status (0 = ok, see :data:`jaxdea.STATUS`), steps, residual
     (periodicity residual of the last cycle), cycles_run, steady (false where the last cycles
-    are not periodic, :data:`jaxdea.engine.metrics.STEADY_RESIDUAL`), plus P_max and
+    are not periodic, :data:`jaxdea.engine.metrics.STEADY_RESIDUAL`), with
+    ``start="neighbour"`` coexist (true where another stable orbit was found from the
+    neighbouring mass's, :func:`jaxdea.engine.coexist.coexisting`), plus P_max and
     f_at_P_max (reduced over f, among cells with status 0 that are steady).
     ``attrs["chunks_computed"]`` and ``attrs["chunks_reused"]`` count the work done by this
     call (not written to the store).
@@ -377,9 +379,10 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
             done = parts.open(resume)
 
         # ---- run ----------------------------------------------------------------------------
-        ints = ("status", "steps", "cycles_run")
-        results = {k: np.empty(n_cells, dtype=np.int32 if k in ints else float)
-                   for k in VARIABLES}
+        names = map_variables(start)
+        dtypes = {"status": np.int32, "steps": np.int32, "cycles_run": np.int32,
+                  "coexist": bool}
+        results = {k: np.empty(n_cells, dtype=dtypes.get(k, float)) for k in names}
         computed = reused = 0
         todo = set(range(n_chunks))
         bar = tqdm(total=n_chunks - len(done), desc="powermap chunks", unit="chunk",
@@ -391,7 +394,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
         try:
             for i in range(n_chunks):
                 lo, hi = i * chunk, min((i + 1) * chunk, n_cells)
-                got = parts.load(i, hi - lo, VARIABLES, cells=(lo, hi)) if i in done else None
+                got = parts.load(i, hi - lo, names, cells=(lo, hi)) if i in done else None
                 if got is not None:
                     reused += 1
                 elif client is not None:  # computed below, on the cluster
@@ -407,7 +410,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
                         parts.save(i, got, cells=(lo, hi))
                     computed += 1
                     bar.update(1)
-                for k in VARIABLES:
+                for k in names:
                     results[k][lo:hi] = got[k]
                 todo.discard(i)
             if client is not None and todo:
@@ -417,7 +420,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
             bar.close()
 
         # ---- assemble -----------------------------------------------------------------------
-        ds = to_dataset(SimpleNamespace(**results), axes, attrs)
+        ds = to_dataset(SimpleNamespace(**results), axes, attrs, names)
         ds.attrs["status_codes"] = "; ".join(f"{k} = {v}" for k, v in STATUS.items())
         ds = reduce_over_f(ds)
         if store is not None:

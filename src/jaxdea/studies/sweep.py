@@ -35,6 +35,22 @@ VARIABLES = {
                       "last cycle (0 = exactly periodic)"),
     "cycles_run": ("1", "drive cycles integrated for the cell (all stages)"),
 }
+#: The extra per-cell variable of a warm-started map (``start="neighbour"``,
+#: :func:`jaxdea.engine.coexist.coexisting`).
+COEXIST = {
+    "coexist": ("1", "true where another stable periodic orbit was found: the chord iteration "
+                     "from the neighbouring mass's orbit (same c and f) converged to an orbit "
+                     "other than the reported one, continued along c (coexisting responses, "
+                     "e.g. near a jump); false: none was found"),
+}
+
+
+def map_variables(start: str = "rest") -> dict[str, tuple[str, str]]:
+    """The per-cell variables of a map (name -> (unit, meaning)): :data:`VARIABLES`, and
+    with warm starts (``start="neighbour"``) :data:`COEXIST`."""
+    return {**VARIABLES, **(COEXIST if start == "neighbour" else {})}
+
+
 #: What P_out is, for the attrs of every study.
 P_OUT_MEANING = ("power dissipated in the payload's dissipative elements (drag, friction); "
                  "springs and gravity store and return energy: they are not output power")
@@ -117,12 +133,14 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
     ))
 
 
-def to_dataset(res: CycleMetrics, coords: dict[str, np.ndarray], attrs: dict) -> xr.Dataset:
-    """Per-cell results (flat, C order over ``coords``) as a labelled Dataset."""
+def to_dataset(res: CycleMetrics, coords: dict[str, np.ndarray], attrs: dict,
+               variables: dict[str, tuple[str, str]] = VARIABLES) -> xr.Dataset:
+    """Per-cell results (flat, C order over ``coords``; the attributes named in
+    ``variables``) as a labelled Dataset."""
     shape = tuple(len(v) for v in coords.values())
     dims = tuple(coords)
     data = {}
-    for name, (unit, desc) in VARIABLES.items():
+    for name, (unit, desc) in variables.items():
         values = np.asarray(getattr(res, name)).reshape(shape)
         data[name] = xr.Variable(dims, values, attrs={"units": unit, "long_name": desc})
     data["steady"] = xr.Variable(dims, steady_cells(data["status"].values,
