@@ -31,7 +31,8 @@ timed run, which that product counts ``every`` times where a real full map compi
 ``<protocol>_diffrax_ratio`` = a plain vmapped ``diffrax.diffeqsolve``'s wall time
 per sampled cell, ``bench/diffrax_baseline.py``, over the protocol's wall time per cell of the
 slice; ``<protocol>_ns_per_cell_step`` = the timed run's wall time less its compile over all its
-cells' steps; ``platform`` = the devices' kind: on an accelerator the engine's lane pools are
+cells' steps; ``neighbour_coexist_cells`` = the warm-started map's cells with a second stable
+orbit (``coexist``); ``platform`` = the devices' kind: on an accelerator the engine's lane pools are
 as wide as a chunk, :func:`jaxdea.engine.batch.default_lanes`).
 """
 
@@ -155,6 +156,8 @@ def run_slice(protocols: list[str], *, every: int = 10, samples: int = 8, quick:
             steps = float(ds.steps.sum())  # every cell's steps, its chord periods included
             out[f"{protocol}_ns_per_cell_step"] = f"{(wall - clock.total) / steps * 1e9:.0f}"
             out[f"{protocol}_steady_ok"] = str(ok)
+            if "coexist" in ds:  # warm starts: cells where a second stable orbit was found
+                out[f"{protocol}_coexist_cells"] = str(int(ds.coexist.sum()))
             if reused:
                 out[f"{protocol}_chunks_reused"] = str(reused)
         out.update(lsoda_check(maps, walls, mass, damping, freq, samples))
