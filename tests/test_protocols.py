@@ -325,6 +325,29 @@ def test_neighbour_warm_starts_equal_the_from_rest_map(model):
                      protocol=jaxdea.Periodic(start="neighbour"))
 
 
+
+def test_forward_and_backward_sweeps_find_the_two_orbits_of_a_hardening_resonance(model):
+    """Continuation exposes jumps (README): with the membrane's viscous branches relaxing at
+    once (tau 1e-5 s: no viscous damping) and a light payload damping, SCDEA-LS's resonance
+    hardens and two steady orbits coexist at 84 Hz. The forward sweep rides the upper branch
+    past the fold (152 mW), the backward sweep stays on the lower one (16.1 mW), and the
+    periodic protocol from rest, an independent route, lands on the lower one too. Both
+    sweeps are steady there: two orbits, not an unsettled transient."""
+    import equinox as eqx
+
+    light = eqx.tree_at(lambda m: (m.actuator.membrane.dielectric.tau,
+                                   m.actuator.membrane.electrode.tau), model, (1e-5, 1e-5))
+    kw = dict(mass=2e-3, damping=0.01, cycles=800)
+    up = jaxdea.sweep(light, **kw, freq=[78.0, 80.0, 82.0, 84.0], protocol="continuation")
+    down = jaxdea.sweep(light, **kw, freq=[84.0, 86.0, 88.0], protocol="continuation",
+                        direction="backward")
+    rest = jaxdea.sweep(light, mass=2e-3, damping=0.01, freq=[84.0], protocol="periodic")
+    high, low = float(up.P_out.sel(f=84.0)), float(down.P_out.sel(f=84.0))
+    assert bool(up.steady.sel(f=84.0)) and bool(down.steady.sel(f=84.0))
+    assert high > 5 * low, (high, low)  # 152.0 mW against 16.09 mW
+    assert int(rest.status[0]) == 0
+    np.testing.assert_allclose(float(rest.P_out[0]), low, rtol=1e-3)
+
 def test_a_warm_started_map_resumes_with_its_coexistence_flags(model, tmp_path, monkeypatch):
     """A ``start="neighbour"`` map's per-cell ``coexist`` flag is part of each chunk's saved
     part: a run interrupted after its first chunk resumes with that chunk's flags as saved
