@@ -82,6 +82,22 @@ def schedule(freq: np.ndarray, n_dev: int) -> np.ndarray:
     return order[dealt(order.size, n_dev)]
 
 
+def scheduled_batches(cells: np.ndarray, size: int, freq: np.ndarray, n_dev: int):
+    """The cells ``cells`` in batches of exactly ``size`` (a compiled call's shape), each in
+    :func:`schedule` order (a generator).
+
+    The last batch is padded by repeating its last cell. Yields ``(sub, real)``: the batch's
+    cell indices and a bool per slot, true at one slot per distinct cell (pass it as
+    ``active``: the padding slots are skipped at no cost)."""
+    for lo in range(0, cells.size, size):
+        part = cells[lo:lo + size]
+        padded = np.concatenate([part, np.full(size - part.size, part[-1])])
+        sub = padded[schedule(freq[padded], n_dev)]
+        real = np.zeros(size, bool)
+        real[np.unique(sub, return_index=True)[1]] = True
+        yield sub, real
+
+
 def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: int = 5,
               control: StepControl = StepControl(), lanes: int | None = None,
               protocol: str | Protocol = "paper", successor=None, tol: float = 1e-6,

@@ -32,7 +32,7 @@ import jax
 import numpy as np
 
 from ..models.cone import ConeActuator, Loading
-from .batch import default_lanes, schedule, take_cells
+from .batch import default_lanes, scheduled_batches, take_cells
 from .chord import chord_cells
 from .metrics import CycleMetrics
 from .periodic import flatten_dynamical, step_residual, with_dynamical
@@ -86,14 +86,13 @@ def coexisting(actuator: ConeActuator, loadings: Loading, shape: tuple[int, int,
         return flag, iterated
     idx = np.arange(n).reshape(blocks, n_chain, rest)
     partner = idx[np.r_[1, np.arange(blocks - 1)]].ravel()  # the mass before (after, first)
-    # the screen's prediction: a secant through two neighbours, x = w * x[a] + (1 - w) * x[b]
+    # the screen's prediction: a secant through the partner and a second neighbour,
+    # x = w * x[partner] + (1 - w) * x[second]
     if blocks > 2:
-        a = np.r_[1, 0, np.arange(1, blocks - 1)]
         b = np.r_[2, 2, np.arange(0, blocks - 2)]
         w = np.r_[2.0, 0.5, np.full(blocks - 2, 2.0)]
     else:
-        a = b = np.r_[1, 0]
-        w = np.ones(2)
+        b, w = np.r_[1, 0], np.ones(2)
     second = idx[b].ravel()
     weight = np.broadcast_to(w[:, None, None], (blocks, n_chain, rest)).ravel()
     freq = np.asarray(loadings.drive.frequency)
@@ -109,19 +108,14 @@ def coexisting(actuator: ConeActuator, loadings: Loading, shape: tuple[int, int,
         return flag, iterated
     own = take_cells(results.final_state, cells)
     wc = weight[cells, None]
-    predicted = wc * flat[idx[a].ravel()[cells]] + (1 - wc) * flat[second[cells]]
+    predicted = wc * flat[partner[cells]] + (1 - wc) * flat[second[cells]]
     far = distance(own, flat[cells], predicted) > float(screen)
     cells = cells[far]
     iterated[cells] = True
     actuator = replicated(actuator, devices)
     batch = order.size  # the chain's stage size: its programs are compiled
     lanes = default_lanes(batch // n_dev, devices)
-    for lo in range(0, cells.size, batch):
-        part = cells[lo:lo + batch]
-        padded = np.concatenate([part, np.full(batch - part.size, part[-1])])
-        sub = padded[schedule(freq[padded], n_dev)]
-        real = np.zeros(batch, bool)
-        real[np.unique(sub, return_index=True)[1]] = True
+    for sub, real in scheduled_batches(cells, batch, freq, n_dev):
         seed = take_cells(results.final_state, sub)
         start = with_dynamical(seed, flat[partner[sub]])
         jac = np.full((batch,) + (flat.shape[1],) * 2, np.nan)

@@ -37,7 +37,7 @@ import jax
 import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
-from .batch import default_lanes, schedule, take_cells
+from .batch import default_lanes, schedule, scheduled_batches, take_cells
 from .chord import CHORD_ITERATIONS, Chord, Iterates, chord_cells
 from .lanes import select_cells
 from .metrics import CycleMetrics
@@ -391,12 +391,8 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     failed = np.concatenate(failed)
     # the stage's own shape (its programs are compiled already), or without a chain all cells
     size = order.size or -(-n // n_dev) * n_dev
-    for lo in range(0, failed.size, size):  # solved from rest, as start="rest" would be
-        part = failed[lo:lo + size]
-        padded = np.concatenate([part, np.full(size - part.size, part[-1])])
-        sub = padded[schedule(freq[padded], n_dev)]
-        real = np.zeros(size, bool)  # the padding slots are skipped at no cost
-        real[np.unique(sub, return_index=True)[1]] = True
+    # solved from rest, as start="rest" would be
+    for sub, real in scheduled_batches(failed, size, freq, n_dev):
         back = to_host(periodic_cells(actuator, take_cells(loadings, sub), active=real,
                                       lanes=lanes or default_lanes(size // n_dev, devices), **kw))
         results = _blank(back, n) if results is None else results
