@@ -267,8 +267,8 @@ def test_chord_columns_repeat_the_stage_by_stage_chain_iteration_for_iteration(m
                                          int(r.status[col]), float(r.P_out[col]))
     history, j = start()
     got = {}
-    for where, cells, r, conv in chord_columns(model.actuator, loadings, slots, seed, history,
-                                               j, ok, **kw):
+    for where, cells, r, conv, _ in chord_columns(model.actuator, loadings, slots, seed,
+                                                  history, j, ok, **kw):
         for i, cell in enumerate(cells):
             got[int(cell)] = (int(r.cycles_run[i]), int(r.steps[i]), int(r.status[i]),
                               float(r.P_out[i]))
@@ -348,6 +348,44 @@ def test_forward_and_backward_sweeps_find_the_two_orbits_of_a_hardening_resonanc
     assert int(rest.status[0]) == 0
     np.testing.assert_allclose(float(rest.P_out[0]), low, rtol=1e-3)
 
+
+def test_frequency_rows_of_a_block():
+    """The rows of the continuation along f (``coexist.frequency_rows``): a row per mass,
+    damping and phase, in ascending f whatever the grid's order; none where the grid is not
+    one monotonic axis."""
+    from jaxdea.engine.coexist import frequency_rows
+
+    # (blocks, n_chain, f x phase) = (1, 2, 3 x 2), f given descending
+    freq = np.tile(np.repeat([30.0, 20.0, 10.0], 2), 2)
+    rows = frequency_rows(freq, (1, 2, 6))
+    np.testing.assert_array_equal(rows, [[4, 2, 0], [5, 3, 1], [10, 8, 6], [11, 9, 7]])
+    assert (np.diff(freq[rows], axis=1) > 0).all()
+    assert frequency_rows(np.array([10.0, 30.0, 20.0, 10.0]), (1, 1, 4)) is None
+
+
+def test_a_warm_started_map_flags_the_upper_branch_of_a_hardening_resonance(model):
+    """``coexisting``'s continuation along f (issue 16) on the resonance of the test above:
+    a warm-started map over 78-88 Hz reports the lower orbit at 84 Hz (as the backward
+    sweep and the from-rest orbit are), and flags it and 85 Hz, where the orbit continued
+    up f from below the resonance rides the upper branch; below the resonance and past the
+    upper branch's fold (86 Hz: one orbit, the forward sweep drops back) nothing is
+    flagged. The chain along c and the mass check alone flag nothing here."""
+    import equinox as eqx
+
+    light = eqx.tree_at(lambda m: (m.actuator.membrane.dielectric.tau,
+                                   m.actuator.membrane.electrode.tau), model, (1e-5, 1e-5))
+    freq = np.arange(78.0, 89.0)
+    got = jaxdea.powermap(light, mass=[2e-3], damping=[0.01, 0.0125], freq=freq,
+                          protocol="periodic", start="neighbour", progress=False)
+    row = got.sel(M=2e-3, c=0.01)
+    flagged = freq[row.coexist.values]
+    assert {84.0, 85.0} <= set(flagged) <= {82.0, 83.0, 84.0, 85.0}, flagged
+    assert int(row.status.sel(f=84.0)) == 0
+    np.testing.assert_allclose(float(row.P_out.sel(f=84.0)), 16.09e-3, rtol=2e-3)
+    assert not got.coexist.sel(f=slice(None, 81.0)).any()
+    assert not got.coexist.sel(f=slice(86.0, None)).any()
+
+
 def test_a_warm_started_map_resumes_with_its_coexistence_flags(model, tmp_path, monkeypatch):
     """A ``start="neighbour"`` map's per-cell ``coexist`` flag is part of each chunk's saved
     part: a run interrupted after its first chunk resumes with that chunk's flags as saved
@@ -409,9 +447,19 @@ def test_a_cell_off_its_neighbours_branch_is_flagged(model):
         np.array([60.0, 110.0, 160.0])
     shape = (mass.size, damping.size, freq.size)
     loadings = make_loadings(model, mass[:, None, None], damping[None, :, None], freq)
-    res = to_host(neighbour_chain(model.actuator, loadings, shape))
+    res, jac = neighbour_chain(model.actuator, loadings, shape, with_jacobian=True)
+    res = to_host(res)
     assert (np.asarray(res.status) == 0).all()
-    flag, iterated = coexisting(model.actuator, loadings, shape, res)
+    # the Jacobians the chain converged with, handed over for the check's chord iterations
+    assert jac.shape == (res.status.size,) + (flatten_dynamical(res.final_state).shape[1],) * 2
+    assert np.isfinite(jac).all(axis=(1, 2)).mean() > 0.9
+    kw = dict(jacobian=jac)
+    flag, _ = coexisting(model.actuator, loadings, shape, res, **kw)
+    assert not flag.any()
+    # the mass check alone (the grid's frequencies, 50 Hz apart, are no neighbours: the
+    # continuation along f starts at most of them)
+    kw["screen_f"] = np.inf
+    flag, iterated = coexisting(model.actuator, loadings, shape, res, **kw)
     assert not flag.any() and iterated.sum() <= 6, iterated.sum()  # few pass the screen
 
     odd, other = (np.ravel_multi_index(i, shape) for i in ((2, 1, 1), (2, 1, 2)))
@@ -419,7 +467,7 @@ def test_a_cell_off_its_neighbours_branch_is_flagged(model):
     flat[odd] = flat[other]
     res = eqx.tree_at(lambda r: r.final_state, res, with_dynamical(res.final_state, flat))
     steps = np.asarray(res.steps).copy()
-    flag, iterated = coexisting(model.actuator, loadings, shape, res)
+    flag, iterated = coexisting(model.actuator, loadings, shape, res, **kw)
     assert np.nonzero(flag)[0].tolist() == [odd]
     after = np.ravel_multi_index((3, 1, 1), shape)  # its partner is the odd cell
     assert iterated[[odd, after]].all()

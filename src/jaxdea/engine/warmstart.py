@@ -241,9 +241,10 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
 
     **Yields:**
 
-    ``(where, cells, metrics, ok)`` each time some columns finish a stage: their slots, the
-    stage's cells, host :class:`CycleMetrics` (status 0 where converged, else 4) and whether
-    they converged.
+    ``(where, cells, metrics, ok, jacobian)`` each time some columns finish a stage: their
+    slots, the stage's cells, host :class:`CycleMetrics` (status 0 where converged, else 4),
+    whether they converged, and their Broyden-updated one-period Jacobians ``(len(where),
+    d, d)`` (meaningful where they converged).
     """
     chord = Chord(actuator, tuple(devices or jax.devices()[:1]), float(tol), control,
                   lanes, driven)
@@ -274,7 +275,7 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
             continue
         where = np.nonzero(done)[0]
         metrics, ok = it.metrics(where), it.converged[where]
-        yield where, slots[where, stage[where]], metrics, ok
+        yield where, slots[where, stage[where]], metrics, ok, it.jac[where]
         flat = flatten_dynamical(it.out.final_state)[where]
         history[:, where] = remember(history[:, where], flat, ok, recent[where])
         recent[where] = ok
@@ -322,7 +323,7 @@ def chain_layout(freq: np.ndarray, shape: tuple[int, int, int],
 
 def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int, int, int], *,
                     tol: float = 1e-6, control: StepControl = StepControl(),
-                    devices: tuple | None = None, driven=None) -> CycleMetrics:
+                    devices: tuple | None = None, driven=None, with_jacobian: bool = False):
     """Periodic steady state of a block of map cells, each warm-started from its neighbour.
 
     **Arguments:**
@@ -335,12 +336,16 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
     - `devices`: JAX devices to split each stage's cells over (dealt lowest frequency first,
       :func:`~jaxdea.engine.batch.schedule`); default the first device.
     - `driven`: the driven membranes (default all).
+    - `with_jacobian`: also return each cell's one-period Jacobian at its orbit.
 
     **Returns:**
 
     :class:`CycleMetrics` per cell, in the cells' order (host arrays). ``cycles_run`` and
     ``steps`` count the primal periods and steps a cell took (chord iterations, and its
-    solve from rest where it fell back).
+    solve from rest where it fell back). With `with_jacobian`, ``(metrics, jacobian)``:
+    ``(n, d, d)`` float32, the Jacobian each chained cell converged with (its shot's in the
+    first stage, Broyden-updated in the later ones; NaN for the cells solved from rest),
+    for :func:`~jaxdea.engine.coexist.coexisting` to start its chord iterations from.
 
     A cell whose chord iteration fails is solved from rest after the chain, together with
     the others of the block that failed (one batch keeps the lanes busy), and the chain goes
@@ -367,7 +372,7 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
                        np.arange(order.size))
     lanes = default_lanes(order.size // n_dev, devices) if order.size else None
     kw = dict(tol=float(tol), control=control, devices=devices, driven=driven)
-    results, failed = None, [rest_cells]
+    results, failed, jacobians = None, [rest_cells], None
     if chained.size:
         slots = columns[order]  # (slot, stage) -> cell
         first = n_chain - 1
@@ -378,16 +383,22 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
         failed.append(slots[keep, first][~ok[keep]])
         # each column's seeds for the predictor: its orbits of consecutive converged stages
         flat = np.asarray(flatten_dynamical(res.final_state))
+        if with_jacobian:
+            jacobians = np.full((n,) + jac.shape[1:], np.nan, np.float32)
+            jacobians[slots[keep, first]] = np.where(ok[keep, None, None], jac[keep], np.nan)
         history = remember(np.full((PREDICTOR_POINTS,) + flat.shape, np.nan), flat, ok,
                            np.zeros_like(ok))
         jac = np.where(ok[:, None, None], jac, np.nan)
         is_kept = np.zeros(order.size, bool)
         is_kept[keep] = True
-        for where, cells, res, ok in chord_columns(actuator, loadings, slots, res.final_state,
-                                                   history, jac, ok, lanes=lanes, **kw):
+        for where, cells, res, ok, js in chord_columns(actuator, loadings, slots,
+                                                       res.final_state, history, jac, ok,
+                                                       lanes=lanes, **kw):
             mine = is_kept[where]
             _scatter(results, cells[mine], take_cells(res, np.nonzero(mine)[0]))
             failed.append(cells[mine & ~ok])
+            if with_jacobian:
+                jacobians[cells[mine & ok]] = js[mine & ok]
     failed = np.concatenate(failed)
     # the stage's own shape (its programs are compiled already), or without a chain all cells
     size = order.size or -(-n // n_dev) * n_dev
@@ -398,4 +409,9 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
         results = _blank(back, n) if results is None else results
         back = with_spent(back, take_cells(results, sub))
         _scatter(results, sub[real], take_cells(back, real))
-    return results
+    if not with_jacobian:
+        return results
+    if jacobians is None:  # no chain: every cell from rest
+        d = np.asarray(flatten_dynamical(results.final_state)).shape[-1]
+        jacobians = np.full((n, d, d), np.nan, np.float32)
+    return results, jacobians

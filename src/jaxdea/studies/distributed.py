@@ -74,8 +74,8 @@ def run_chunk(model: Model, loadings: Loading, devices: tuple, *, protocol, succ
         kw = dict(tol=tol, control=control, devices=devices,
                   driven=driven_membranes(loadings))
         mine, shape = take_cells(loadings, cells), (blocks, n_chain, rest)
-        res = neighbour_chain(model.actuator, mine, shape, **kw)
-        two, _ = coexisting(model.actuator, mine, shape, res, **kw)
+        res, jac = neighbour_chain(model.actuator, mine, shape, with_jacobian=True, **kw)
+        two, _ = coexisting(model.actuator, mine, shape, res, jacobian=jac, **kw)
         pad = np.minimum(np.arange(loadings.drive.frequency.shape[0]), cells.size - 1)
         out = {k: np.asarray(getattr(res, k)) for k in VARIABLES}
         out["coexist"] = two

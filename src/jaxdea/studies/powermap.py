@@ -261,7 +261,8 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
     (periodicity residual of the last cycle), cycles_run, steady (false where the last cycles
     are not periodic, :data:`jaxdea.engine.metrics.STEADY_RESIDUAL`), with
     ``start="neighbour"`` coexist (true where another stable orbit was found from the
-    neighbouring mass's, :func:`jaxdea.engine.coexist.coexisting`), plus P_max and
+    neighbouring mass's or by continuation along f,
+    :func:`jaxdea.engine.coexist.coexisting`), plus P_max and
     f_at_P_max (reduced over f, among cells with status 0 that are steady).
     ``attrs["chunks_computed"]`` and ``attrs["chunks_reused"]`` count the work done by this
     call (not written to the store).

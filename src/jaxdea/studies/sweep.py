@@ -38,8 +38,9 @@ VARIABLES = {
 #: The extra per-cell variable of a warm-started map (``start="neighbour"``,
 #: :func:`jaxdea.engine.coexist.coexisting`).
 COEXIST = {
-    "coexist": ("1", "true where another stable periodic orbit was found: the chord iteration "
-                     "from the neighbouring mass's orbit (same c and f) converged to an orbit "
+    "coexist": ("1", "true where another stable periodic orbit was found: solved from the "
+                     "neighbouring mass's orbit (same c and f), or continued along f from "
+                     "the neighbouring frequencies' orbits, the cell converged to an orbit "
                      "other than the reported one, continued along c (coexisting responses, "
                      "e.g. near a jump); false: none was found"),
 }
