@@ -134,23 +134,22 @@ def coexisting(actuator: ConeActuator, loadings: Loading, shape: tuple[int, int,
     n = int(np.prod(shape))
     # the chain's stage size (its programs are compiled), or without a chain all cells
     batch = order.size or -(-n // len(devices)) * len(devices)
-    kw = dict(tol=float(tol), control=control, devices=devices, driven=driven)
+    kw = dict(tol=float(tol), control=control, devices=devices, driven=driven,
+              batch=batch)
     actuator = replicated(actuator, devices)
-    flag, iterated = np.zeros(n, bool), np.zeros(n, bool)
-    if jacobian is None:
-        d = np.asarray(flatten_dynamical(take_cells(results.final_state, [0]))).shape[-1]
-        jacobian = np.full((n, d, d), np.nan, np.float32)
+    # the map's orbits, once for both checks (the checks add work to results, not orbits)
+    status = np.asarray(results.status)
+    flat = np.asarray(flatten_dynamical(results.final_state))
     chained = np.zeros(n, bool)
     chained[columns[:, :-1].ravel()] = True  # the first stage (last index) excepted
-    for check, level in ((_along_masses, screen), (_along_frequency, screen_f)):
-        two, done = check(actuator, loadings, shape, results, jacobian, chained, batch,
-                          float(level), **kw)
-        flag |= two
-        iterated |= done
-    return flag, iterated
+    flag, iterated = _along_masses(actuator, loadings, shape, results, status, flat, chained,
+                                   float(screen), **kw)
+    two, done = _along_frequency(actuator, loadings, shape, results, status, flat, jacobian,
+                                 float(screen_f), **kw)
+    return flag | two, iterated | done
 
 
-def _along_masses(actuator, loadings, shape, results, jacobian, chained, batch, screen, **kw):
+def _along_masses(actuator, loadings, shape, results, status, flat, chained, screen, **kw):
     """Steps 1-3 of the module: each chained cell against its mass neighbours' orbits."""
     blocks, n_chain, rest = shape
     n = blocks * n_chain * rest
@@ -168,8 +167,6 @@ def _along_masses(actuator, loadings, shape, results, jacobian, chained, batch, 
         b, w = np.r_[1, 0], np.ones(2)
     second = idx[b].ravel()
     weight = np.broadcast_to(w[:, None, None], (blocks, n_chain, rest)).ravel()
-    status = np.asarray(results.status)
-    flat = np.asarray(flatten_dynamical(results.final_state))
     cand = chained & (status == 0) & (status[partner] == 0) & (status[second] == 0)
     cand &= np.any(flat != flat[partner], axis=1)
     cells = np.nonzero(cand)[0]
@@ -182,9 +179,8 @@ def _along_masses(actuator, loadings, shape, results, jacobian, chained, batch, 
     iterated[cells] = True
     # a true Jacobian by a shot: from the cell's own, more of these chord iterations fail
     # and run again (more periods per cell on the small maps of tests/test_protocols.py)
-    unknown = np.full((cells.size,) + jacobian.shape[1:], np.nan)
     other, conv, _ = solve_from(actuator, loadings, results, cells, flat[partner[cells]],
-                                unknown, batch, **kw)
+                                None, **kw)
     flag[cells] = conv & (distance(take_cells(results.final_state, cells), flat[cells], other)
                           > DISTINCT)
     return flag, iterated
@@ -210,7 +206,7 @@ def frequency_rows(freq: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray 
     return rows
 
 
-def _along_frequency(actuator, loadings, shape, results, jacobian, chained, batch, screen,
+def _along_frequency(actuator, loadings, shape, results, status, flat, jacobian, screen,
                      **kw):
     """Step 4 of the module: continuation along f, up and down each row, from where the
     map's orbits jump or end."""
@@ -220,8 +216,6 @@ def _along_frequency(actuator, loadings, shape, results, jacobian, chained, batc
     rows = frequency_rows(freq, shape)
     if rows is None or rows.shape[1] < 2:
         return flag, iterated
-    status = np.asarray(results.status)
-    flat = np.asarray(flatten_dynamical(results.final_state))
 
     def near(a, b):  # a continuation's step from cell a to cell b
         return np.abs(freq[b] - freq[a]) <= F_STEP * np.minimum(freq[a], freq[b])
@@ -243,14 +237,15 @@ def _along_frequency(actuator, loadings, shape, results, jacobian, chained, batc
         off[both] = distance(take_cells(results.final_state, here[both]), flat[here[both]],
                              predicted[both]) > screen
         start = ok & (off | (status[here] != 0)) & near(prev, here)
-        cells, seeds, jacs = here[start], flat[prev[start]], jacobian[here[start]]
+        cells, seeds = here[start], flat[prev[start]]
+        jacs = None if jacobian is None else jacobian[cells]
         following = False
         while cells.size:
             iterated[cells] = True
             # settle where the map has no orbit, or along a branch the map is not on
             settle = (status[cells] != 0) | following
             orbits, conv, jacs = solve_from(actuator, loadings, results, cells, seeds, jacs,
-                                            batch, settle=settle, **kw)
+                                            settle=settle, **kw)
             mine = status[cells] == 0
             gap = np.full(cells.size, np.inf)
             gap[mine] = distance(take_cells(results.final_state, cells[mine]), flat[cells[mine]],
@@ -263,18 +258,19 @@ def _along_frequency(actuator, loadings, shape, results, jacobian, chained, batc
 
 
 def solve_from(actuator: ConeActuator, loadings: Loading, results: CycleMetrics,
-               cells: np.ndarray, seeds: np.ndarray, jacobians: np.ndarray, batch: int, *,
-               tol: float, control: StepControl, devices: tuple, driven,
+               cells: np.ndarray, seeds: np.ndarray, jacobians: np.ndarray | None, *,
+               batch: int, tol: float, control: StepControl, devices: tuple, driven,
                settle: np.ndarray | None = None):
     """Stable periodic orbits of the distinct ``cells`` from the flat states ``seeds``.
 
     Chord iterations (:func:`~jaxdea.engine.chord.chord_cells`) in batches of ``batch``
     cells (a compiled stage shape), from the Jacobians ``jacobians`` (``(len(cells), d,
-    d)``) where they are finite, and where those fail or are not finite from a true one (by
-    one shot); where both fail and ``settle`` is true, the cell settles from its seed for
-    :data:`FOLLOW_CYCLES` periods and is shot (:func:`~jaxdea.engine.periodic.periodic_cells`,
-    its stability checked): what a continuation along f does where a branch ends. The work
-    is added to the cells' ``steps`` and ``cycles_run`` in ``results`` (in place).
+    d)``, or ``None``: none known) where they are finite, and where those fail or are not
+    finite from a true one (by one shot); where both fail and ``settle`` is true, the cell
+    settles from its seed for :data:`FOLLOW_CYCLES` periods and is shot
+    (:func:`~jaxdea.engine.periodic.periodic_cells`, its stability checked): what a
+    continuation along f does where a branch ends. The work is added to the cells'
+    ``steps`` and ``cycles_run`` in ``results`` (in place).
 
     Returns ``(orbits, converged, jacobians)``: flat dynamical states ``(len(cells), d)``, a
     bool per cell, true where a stable orbit was found (elsewhere the orbit is
@@ -313,8 +309,8 @@ def solve_from(actuator: ConeActuator, loadings: Loading, results: CycleMetrics,
         r = periodic_cells(actuator, ld, initial=start, active=real, warmup=FOLLOW_CYCLES, **kw)
         return r, np.full((sub.size, d, d), np.nan), np.asarray(r.status) == 0
 
-    known = np.isfinite(jacobians).all(axis=(1, 2))
-    solve(known, chord(True))
+    if jacobians is not None:
+        solve(np.isfinite(jacobians).all(axis=(1, 2)), chord(True))
     solve(~converged, chord(False))
     if settle is not None:
         solve(~converged & settle, settled)

@@ -383,12 +383,12 @@ def neighbour_chain(actuator: ConeActuator, loadings: Loading, shape: tuple[int,
         failed.append(slots[keep, first][~ok[keep]])
         # each column's seeds for the predictor: its orbits of consecutive converged stages
         flat = np.asarray(flatten_dynamical(res.final_state))
-        if with_jacobian:
-            jacobians = np.full((n,) + jac.shape[1:], np.nan, np.float32)
-            jacobians[slots[keep, first]] = np.where(ok[keep, None, None], jac[keep], np.nan)
         history = remember(np.full((PREDICTOR_POINTS,) + flat.shape, np.nan), flat, ok,
                            np.zeros_like(ok))
         jac = np.where(ok[:, None, None], jac, np.nan)
+        if with_jacobian:
+            jacobians = np.full((n,) + jac.shape[1:], np.nan, np.float32)
+            jacobians[slots[keep, first]] = jac[keep]
         is_kept = np.zeros(order.size, bool)
         is_kept[keep] = True
         for where, cells, res, ok, js in chord_columns(actuator, loadings, slots,
