@@ -26,9 +26,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
 ALL = ("res", "prev", "herm", "back", "window", "lockup", "blown")
 LANES = 128
 CYCLES, AVERAGE = 10**6, 2  # never finishes: every lane busy for every step
@@ -123,10 +121,8 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool):
 
 
 def main() -> None:
-    import numpy as np
-
     import jaxdea
-    from jaxdea.studies.loadings import make_loadings
+    from lane_profile import workload
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=3)
@@ -134,9 +130,7 @@ def main() -> None:
     args = ap.parse_args()
     jaxdea.use_cpu_cores(1)  # one device, no Eigen pool (as the map's devices run)
     n_step = max(16, args.steps // 16 * 16)
-    cfg = jaxdea.load_config(ROOT / "configs" / "dcdea_ls.toml")
-    m, c = np.meshgrid(np.logspace(-4, -2, LANES // 8), np.logspace(-1, 1, 8), indexing="ij")
-    loads = make_loadings(cfg, m.ravel(), c.ravel(), np.full(m.size, 60.0), "A")
+    cfg, loads = workload(LANES)  # the cells of bench/lane_profile.py
     variants = {"floor": ((), False), "all": (ALL, False), "all_rounds": (ALL, True)}
     for p in ALL:
         variants["all-" + p] = (tuple(x for x in ALL if x != p), False)

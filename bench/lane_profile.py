@@ -69,19 +69,27 @@ def patched(variant: str):
         lanes.hermite_extrema, lanes.periodicity_residual, ConeActuator.lockup_margin = saved
 
 
-def compile_variant(variant: str, cycles: int, lanes: int = 128):
-    """The variant's engine, compiled for the profile's cells: ``(run, loads, hlo_text)``."""
-    import jax
+def workload(lanes: int = 128):
+    """The profile's model and cells: ``(config, loadings)``, ``lanes`` payloads at 60 Hz."""
     import numpy as np
 
     import jaxdea
-    from jaxdea.engine.lanes import run_protocol
     from jaxdea.studies.loadings import make_loadings
 
     model = jaxdea.load_config(ROOT / "configs" / "dcdea_ls.toml")
     m, c = np.meshgrid(np.logspace(-4, -2, lanes // 8), np.logspace(-1, 1, 8), indexing="ij")
     f = np.full(m.size, 60.0)
-    loads = make_loadings(model, m.ravel(), c.ravel(), f, "A")
+    return model, make_loadings(model, m.ravel(), c.ravel(), f, "A")
+
+
+def compile_variant(variant: str, cycles: int, lanes: int = 128):
+    """The variant's engine, compiled for the profile's cells: ``(run, loads, hlo_text)``."""
+    import jax
+
+    import jaxdea
+    from jaxdea.engine.lanes import run_protocol
+
+    model, loads = workload(lanes)
     driven = () if variant in ("no_returned", "bare") else (0,)
     control = jaxdea.StepControl(precision="single" if variant == "single" else "double")
     with patched(variant):
