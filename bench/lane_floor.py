@@ -10,6 +10,8 @@ and off:
 - ``all``: everything the engine's step does (periodicity residual and contraction rate,
   cycle-start state, Hermite extrema, returned energy, averaging window, Gent margin,
   blown-step NaN and ``done``);
+- ``all_before``: ``all`` as the engine's step was before session 28 (whole states in the
+  cycle-start and window records, the blown-step NaN written every step);
 - ``all_rounds``: ``all`` in rounds of 16 steps (the engine's loop structure);
 - ``all-X``: ``all`` without piece X.
 
@@ -25,15 +27,24 @@ Ends with one line: RESULT key=value ...
 from __future__ import annotations
 
 import argparse
+import collections
 import time
 
+DYN = ("q", "v", "charge", "xi_m", "xi_el")
+ACC = ("payload_work", "v2", "energy_in")
+Dyn = collections.namedtuple("Dyn", DYN)
 ALL = ("res", "prev", "herm", "back", "window", "lockup", "blown")
 LANES = 128
 CYCLES, AVERAGE = 10**6, 2  # never finishes: every lane busy for every step
 
 
-def make(model, parts: tuple[str, ...], n_step: int, rounds: bool):
-    """The copied step with ``parts`` on, jitted over a pool of lanes for ``n_step`` steps."""
+def make(model, parts: tuple[str, ...], n_step: int, rounds: bool, lean: bool = True):
+    """The copied step with ``parts`` on, jitted over a pool of lanes for ``n_step`` steps.
+
+    ``lean``: as the engine is now: the cycle-start record holds the dynamical states only,
+    the window's the energy accumulators only, and a blown step sets a flag (the engine
+    writes its NaN once per round). ``False``: as it was up to session 27 (both records the
+    whole state; the NaN written in every step)."""
     import jax
     import jax.numpy as jnp
 
@@ -74,7 +85,11 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool):
             rate = jnp.where(measured, jnp.maximum(ratio, L["ratio"]), L["rate"])
             N.update(res=jnp.where(wrap, res, L["res"]), ratio=ratio, rate=rate)
         if "prev" in parts:
-            N["prev"] = where(wrap, y, L["prev"])
+            if lean:
+                N["prev"] = Dyn(*(jnp.where(wrap, getattr(y, k), getattr(L["prev"], k))
+                                  for k in DYN))
+            else:
+                N["prev"] = where(wrap, y, L["prev"])
         in_window = accept & (L["cycle"] >= CYCLES - AVERAGE)
         if "herm" in parts:
             (x0, v0), (x1, v1) = model.payload_motion(L["y"]), model.payload_motion(y1)
@@ -86,7 +101,10 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool):
             N["back"] = jnp.where(in_window, L["back"] + back, L["back"])
         if "window" in parts:
             start = wrap & (cycle == CYCLES - AVERAGE)
-            N["window"] = where(start, y, L["window"])
+            if lean:
+                N["window"] = {k: jnp.where(start, getattr(y, k), L["window"][k]) for k in ACC}
+            else:
+                N["window"] = where(start, y, L["window"])
             N["wcycle"] = jnp.where(start, cycle, L["wcycle"])
         lockup = L["lockup"]
         if "lockup" in parts:
@@ -96,7 +114,8 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool):
         N["steps"] = steps
         if "blown" in parts:
             blown = active & ~ok & (h < 1e-12 * period)
-            N["y"] = jax.tree_util.tree_map(lambda a: jnp.where(blown, jnp.nan, a), N["y"])
+            if not lean:
+                N["y"] = jax.tree_util.tree_map(lambda a: jnp.where(blown, jnp.nan, a), N["y"])
             N["done"] = (L["done"] | (cycle >= CYCLES) | lockup | blown
                          | (steps >= 5_000_000))
         return N
@@ -108,7 +127,9 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool):
         z = jnp.zeros(LANES)
         L = dict(y=ys, u=z, h=jnp.full(LANES, 1e-5), cycle=jnp.zeros(LANES, jnp.int32),
                  done=jnp.zeros(LANES, bool), res=z + jnp.inf, ratio=z + 1.0, rate=z + 1.0,
-                 prev=ys, window=ys, wcycle=jnp.zeros(LANES, jnp.int32), xmin=z + jnp.inf,
+                 prev=Dyn(*(getattr(ys, k) for k in DYN)) if lean else ys,
+                 window={k: getattr(ys, k) for k in ACC} if lean else ys,
+                 wcycle=jnp.zeros(LANES, jnp.int32), xmin=z + jnp.inf,
                  xmax=z - jnp.inf, back=jnp.zeros((LANES, 1)), lockup=jnp.zeros(LANES, bool),
                  steps=jnp.zeros(LANES, jnp.int32))
         vs = jax.vmap(step)
@@ -131,12 +152,13 @@ def main() -> None:
     jaxdea.use_cpu_cores(1)  # one device, no Eigen pool (as the map's devices run)
     n_step = max(16, args.steps // 16 * 16)
     cfg, loads = workload(LANES)  # the cells of bench/lane_profile.py
-    variants = {"floor": ((), False), "all": (ALL, False), "all_rounds": (ALL, True)}
+    variants = {"floor": ((), False, True), "all": (ALL, False, True),
+                "all_before": (ALL, False, False), "all_rounds": (ALL, True, True)}
     for p in ALL:
-        variants["all-" + p] = (tuple(x for x in ALL if x != p), False)
+        variants["all-" + p] = (tuple(x for x in ALL if x != p), False, True)
     progs = {}
-    for k, (parts, rounds) in variants.items():
-        progs[k] = make(cfg.actuator, parts, n_step, rounds)
+    for k, (parts, rounds, lean) in variants.items():
+        progs[k] = make(cfg.actuator, parts, n_step, rounds, lean)
         progs[k](loads)["u"].block_until_ready()  # compile and first call, untimed
     best = {k: float("inf") for k in progs}
     for _ in range(args.rounds):

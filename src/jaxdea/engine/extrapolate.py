@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..models.cone import ConeState
-from .metrics import DYNAMICAL
+from .metrics import DYNAMICAL, Dynamics, dynamics, energies
 from .step_control import SCALES
 
 #: Order of the fitted recurrence (modes of the transient); measured on 64 DCDEA-LS cells at
@@ -40,7 +40,7 @@ ORDER = 4
 HISTORY = 3 * ORDER + 2
 
 
-def flatten(y: ConeState) -> Array:
+def flatten(y: ConeState | Dynamics) -> Array:
     """The dynamical states of one cell as one vector, each divided by its absolute scale."""
     return jnp.concatenate([jnp.ravel(getattr(y, k)) / SCALES[k][0] for k in DYNAMICAL])
 
@@ -270,7 +270,8 @@ def _restart(lane, y, cycle):
     return eqx.tree_at(
         lambda s: (s.y, s.cycle, s.u, s.window, s.wcycle, s.prev, s.res, s.ratio, s.rate,
                    s.back, s.xmin, s.xmax),
-        lane, (y, cycle, jnp.zeros(n), y, cycle, y, jnp.full(n, jnp.inf), jnp.ones(n),
+        lane, (y, cycle, jnp.zeros(n), energies(y), cycle, dynamics(y), jnp.full(n, jnp.inf),
+               jnp.ones(n),
                jnp.ones(n), jnp.zeros_like(lane.back), jnp.full(n, jnp.inf),
                jnp.full(n, -jnp.inf)))
 

@@ -61,7 +61,12 @@ from ..solver import ExponentialRK4, LawsonRK4, SemilinearTerm
 from . import extrapolate as _extrapolate
 from .metrics import (
     CycleMetrics,
+    Dynamics,
+    Energies,
     all_finite,
+    blow_up,
+    dynamics,
+    energies,
     hermite_extrema,
     periodicity_residual,
     settled,
@@ -100,9 +105,9 @@ class _Lane(eqx.Module):
     u: Array  # current position in the cycle, fraction in [0, 1)
     h: Array  # proposed next step, s
     steps: Array
-    window: ConeState  # state at the start of the averaging window
+    window: Energies  # energy accumulators at the start of the averaging window
     wcycle: Array  # completed cycles when the averaging window started
-    prev: ConeState  # state at the start of the current cycle
+    prev: Dynamics  # dynamical states at the start of the current cycle
     res: Array  # periodicity residual of the last completed cycle
     ratio: Array  # residual of the last cycle over that of the one before
     rate: Array  # contraction per cycle: the larger of the last two ratios
@@ -110,6 +115,7 @@ class _Lane(eqx.Module):
     xmin: Array
     xmax: Array
     lockup: Array
+    blown: Array  # the step size collapsed; the state becomes NaN at the round's end
     done: Array
     history: Array  # cycle-start states for the transient's extrapolation (empty when off)
     recorded: Array  # the last cycle whose start state is in history (empty when off)
@@ -307,9 +313,9 @@ def run_protocol(
             u=jnp.zeros(n),
             h=jnp.minimum(control.dt_max, period / 200.0),
             steps=jnp.zeros(n, jnp.int32),
-            window=y,
+            window=energies(y),
             wcycle=jnp.zeros(n, jnp.int32),
-            prev=y,
+            prev=dynamics(y),
             res=jnp.full(n, jnp.inf),
             ratio=jnp.ones(n),
             rate=jnp.ones(n),
@@ -317,6 +323,7 @@ def run_protocol(
             xmin=jnp.full(n, jnp.inf),
             xmax=jnp.full(n, -jnp.inf),
             lockup=jnp.zeros(n, bool),
+            blown=jnp.zeros(n, bool),
             done=idx >= n_cells,
             history=jnp.zeros((n,) + hist_shape),
             recorded=jnp.full((n,) + count_shape, -1, jnp.int32),
@@ -363,7 +370,10 @@ def run_protocol(
         ratio = jnp.where(measured, res / jnp.maximum(lane.res, 1e-300), lane.ratio)
         rate = jnp.where(measured, jnp.maximum(ratio, lane.ratio), lane.rate)  # last two cycles
         res = jnp.where(wrap, res, lane.res)
-        prev = jax.tree_util.tree_map(lambda a, b: jnp.where(wrap, a, b), y, lane.prev)
+        # only what is read later is carried: the dynamical states here, the energies in
+        # the window (each leaf selected is a kernel per lane-step)
+        prev = jax.tree_util.tree_map(lambda a, b: jnp.where(wrap, a, b), dynamics(y),
+                                      lane.prev)
 
         # window bookkeeping: amplitude from the Hermite interpolant of the accepted step
         if settle is None:
@@ -389,22 +399,23 @@ def run_protocol(
             xmin = jnp.where(start, jnp.inf, xmin)
             xmax = jnp.where(start, -jnp.inf, xmax)
             back = jnp.where(start, 0.0, back)
-        window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), y, lane.window)
+        window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), energies(y),
+                                        lane.window)
         wcycle = jnp.where(start, cycle, lane.wcycle)
 
         margin = model.lockup_margin(y)
         lockup = lane.lockup | (active & ~(margin > 0))
         steps = lane.steps + active.astype(jnp.int32)
-        blown = active & ~ok & (h < 1e-12 * period)  # step size collapsed: non-finite/unstable
-        y = jax.tree_util.tree_map(
-            lambda a: jnp.where(blown, jnp.nan, a), y)
+        # step size collapsed: non-finite/unstable. The lane stops here; its state is set
+        # to NaN once per round (blow_up in round_), not in every step (8 selects per step)
+        blown = active & ~ok & (h < 1e-12 * period)
         done = (lane.done | (cycle >= cycles) | lockup | blown | (steps >= control.max_steps)
                 | converged)
         return eqx.tree_at(
             lambda s: (s.y, s.cycle, s.u, s.h, s.steps, s.window, s.wcycle, s.prev, s.res,
-                       s.ratio, s.rate, s.back, s.xmin, s.xmax, s.lockup, s.done),
+                       s.ratio, s.rate, s.back, s.xmin, s.xmax, s.lockup, s.blown, s.done),
             lane, (y, cycle, u, h_next, steps, window, wcycle, prev, res, ratio, rate, back,
-                   xmin, xmax, lockup, done),
+                   xmin, xmax, lockup, lane.blown | blown, done),
         )
 
     out = dict(
@@ -428,6 +439,7 @@ def run_protocol(
     def round_(carry):
         lane, out, next_job = carry
         lane = jax.lax.fori_loop(0, steps_per_round, lambda _, ln: jax.vmap(lane_step)(ln), lane)
+        lane = eqx.tree_at(lambda s: s.y, lane, blow_up(lane.blown, lane.y))
         if jump is not None:
             lane, want = _extrapolate.record(lane, cycles, average)
             lane = jax.lax.cond(jnp.any(want), lambda ln, w: select_cells(
