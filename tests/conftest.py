@@ -12,13 +12,15 @@ sys.path.insert(0, str(Path(__file__).parent))
 import jax  # noqa: E402
 
 import jaxdea  # noqa: E402
-from jaxdea.engine.sharding import without_eigen_pool  # noqa: E402
+from jaxdea.engine.sharding import cpu_flags  # noqa: E402
 
-# The suite runs on one JAX CPU device. XLA's Eigen intra-op pool has nothing to split in the
+# The suite runs on one JAX CPU device, with the engine's XLA CPU flags (as jaxdea.use_cpu_cores
+# sets them for the CLI and benches): no Eigen intra-op pool (it has nothing to split in the
 # lane engine's tiny ops, and its spinning workers can take half a core from the compute
-# thread (jaxdea.use_cpu_cores does the same for the CLI and benches). Importing jaxdea does
-# not start a JAX backend, so this still takes effect; threading only, numbers unchanged.
-without_eigen_pool()
+# thread), and 512-bit vectors where the CPU has AVX-512. Importing jaxdea does not start a
+# JAX backend, so this still takes effect. The wide vectors move a warm-started map's results by
+# ~1e-10 at most (bench/NOTES.md), far inside every tolerance here.
+cpu_flags()
 
 # Compiled programs go to an on-disk cache shared by the pytest workers: many modules compile
 # the same engines (same config, protocol and shape), and the module-end cache release below

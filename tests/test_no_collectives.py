@@ -83,3 +83,24 @@ def test_sharded_runs_compile_no_collective(tmp_path):
     lapack = [name for name, t in texts.items()
               if "num_partitions=2" in t and BATCHED_LU.search(t)]
     assert not lapack, f"batched LAPACK calls in sharded modules: {lapack}"
+
+
+def test_cpu_flags_ask_for_wide_vectors_only_where_the_cpu_has_them(monkeypatch):
+    """``cpu_flags`` adds 512-bit vectors on an AVX-512 CPU, nothing on another one, and
+    never overrides a width the user set."""
+    from jaxdea.engine import sharding
+
+    for avx512, given, want in [
+            (True, "", "--xla_cpu_multi_thread_eigen=false --xla_cpu_prefer_vector_width=512"),
+            (False, "", "--xla_cpu_multi_thread_eigen=false"),
+            (True, "--xla_cpu_prefer_vector_width=256",
+             "--xla_cpu_prefer_vector_width=256 --xla_cpu_multi_thread_eigen=false")]:
+        monkeypatch.setenv("XLA_FLAGS", given)
+        monkeypatch.setattr(sharding, "host_has_avx512", lambda avx512=avx512: avx512)
+        monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 10))
+        sharding.cpu_flags()
+        assert os.environ["XLA_FLAGS"] == want
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 9))  # flag not measured there
+    sharding.cpu_flags()
+    assert "vector_width" not in os.environ["XLA_FLAGS"]
