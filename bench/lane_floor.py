@@ -27,12 +27,8 @@ Ends with one line: RESULT key=value ...
 from __future__ import annotations
 
 import argparse
-import collections
 import time
 
-DYN = ("q", "v", "charge", "xi_m", "xi_el")
-ACC = ("payload_work", "v2", "energy_in")
-Dyn = collections.namedtuple("Dyn", DYN)
 ALL = ("res", "prev", "herm", "back", "window", "lockup", "blown")
 LANES = 128
 CYCLES, AVERAGE = 10**6, 2  # never finishes: every lane busy for every step
@@ -49,7 +45,7 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool, lean: bool = 
     import jax.numpy as jnp
 
     from jaxdea.engine.lanes import cycle_nodes
-    from jaxdea.engine.metrics import hermite_extrema, periodicity_residual
+    from jaxdea.engine.metrics import dynamics, energies, hermite_extrema, periodicity_residual
     from jaxdea.engine.step_control import IController, charge_weight
     from jaxdea.solver import LawsonRK4, SemilinearTerm
 
@@ -85,11 +81,7 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool, lean: bool = 
             rate = jnp.where(measured, jnp.maximum(ratio, L["ratio"]), L["rate"])
             N.update(res=jnp.where(wrap, res, L["res"]), ratio=ratio, rate=rate)
         if "prev" in parts:
-            if lean:
-                N["prev"] = Dyn(*(jnp.where(wrap, getattr(y, k), getattr(L["prev"], k))
-                                  for k in DYN))
-            else:
-                N["prev"] = where(wrap, y, L["prev"])
+            N["prev"] = where(wrap, dynamics(y) if lean else y, L["prev"])
         in_window = accept & (L["cycle"] >= CYCLES - AVERAGE)
         if "herm" in parts:
             (x0, v0), (x1, v1) = model.payload_motion(L["y"]), model.payload_motion(y1)
@@ -101,10 +93,7 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool, lean: bool = 
             N["back"] = jnp.where(in_window, L["back"] + back, L["back"])
         if "window" in parts:
             start = wrap & (cycle == CYCLES - AVERAGE)
-            if lean:
-                N["window"] = {k: jnp.where(start, getattr(y, k), L["window"][k]) for k in ACC}
-            else:
-                N["window"] = where(start, y, L["window"])
+            N["window"] = where(start, energies(y) if lean else y, L["window"])
             N["wcycle"] = jnp.where(start, cycle, L["wcycle"])
         lockup = L["lockup"]
         if "lockup" in parts:
@@ -127,8 +116,7 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool, lean: bool = 
         z = jnp.zeros(LANES)
         L = dict(y=ys, u=z, h=jnp.full(LANES, 1e-5), cycle=jnp.zeros(LANES, jnp.int32),
                  done=jnp.zeros(LANES, bool), res=z + jnp.inf, ratio=z + 1.0, rate=z + 1.0,
-                 prev=Dyn(*(getattr(ys, k) for k in DYN)) if lean else ys,
-                 window={k: getattr(ys, k) for k in ACC} if lean else ys,
+                 prev=dynamics(ys) if lean else ys, window=energies(ys) if lean else ys,
                  wcycle=jnp.zeros(LANES, jnp.int32), xmin=z + jnp.inf,
                  xmax=z - jnp.inf, back=jnp.zeros((LANES, 1)), lockup=jnp.zeros(LANES, bool),
                  steps=jnp.zeros(LANES, jnp.int32))

@@ -271,8 +271,7 @@ def _restart(lane, y, cycle):
         lambda s: (s.y, s.cycle, s.u, s.window, s.wcycle, s.prev, s.res, s.ratio, s.rate,
                    s.back, s.xmin, s.xmax),
         lane, (y, cycle, jnp.zeros(n), energies(y), cycle, dynamics(y), jnp.full(n, jnp.inf),
-               jnp.ones(n),
-               jnp.ones(n), jnp.zeros_like(lane.back), jnp.full(n, jnp.inf),
+               jnp.ones(n), jnp.ones(n), jnp.zeros_like(lane.back), jnp.full(n, jnp.inf),
                jnp.full(n, -jnp.inf)))
 
 

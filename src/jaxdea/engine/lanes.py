@@ -64,7 +64,6 @@ from .metrics import (
     Dynamics,
     Energies,
     all_finite,
-    blow_up,
     dynamics,
     energies,
     hermite_extrema,
@@ -407,7 +406,7 @@ def run_protocol(
         lockup = lane.lockup | (active & ~(margin > 0))
         steps = lane.steps + active.astype(jnp.int32)
         # step size collapsed: non-finite/unstable. The lane stops here; its state is set
-        # to NaN once per round (blow_up in round_), not in every step (8 selects per step)
+        # to NaN once per round (in round_), not in every step (8 selects per step)
         blown = active & ~ok & (h < 1e-12 * period)
         done = (lane.done | (cycle >= cycles) | lockup | blown | (steps >= control.max_steps)
                 | converged)
@@ -439,7 +438,10 @@ def run_protocol(
     def round_(carry):
         lane, out, next_job = carry
         lane = jax.lax.fori_loop(0, steps_per_round, lambda _, ln: jax.vmap(lane_step)(ln), lane)
-        lane = eqx.tree_at(lambda s: s.y, lane, blow_up(lane.blown, lane.y))
+        # a lane whose step size collapsed ends with its whole state NaN (set here once per
+        # round, not in every step)
+        nans = jax.tree_util.tree_map(lambda a: jnp.full_like(a, jnp.nan), lane.y)
+        lane = eqx.tree_at(lambda s: s.y, lane, select_cells(lane.blown, nans, lane.y))
         if jump is not None:
             lane, want = _extrapolate.record(lane, cycles, average)
             lane = jax.lax.cond(jnp.any(want), lambda ln, w: select_cells(

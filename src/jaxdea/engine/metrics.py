@@ -12,7 +12,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -112,10 +111,6 @@ def hermite_extrema(x0, v0, x1, v1, h):
     return jnp.min(cand, axis=0), jnp.max(cand, axis=0)
 
 
-#: The states that define the dynamics (the rest are energy accumulators).
-DYNAMICAL = ("q", "v", "charge", "xi_m", "xi_el")
-
-
 class Dynamics(NamedTuple):
     """The dynamical states of a :class:`~jaxdea.models.cone.ConeState` (:data:`DYNAMICAL`):
     what the lane engine keeps of a cycle's start state, for the periodicity residual.
@@ -126,6 +121,10 @@ class Dynamics(NamedTuple):
     charge: Array
     xi_m: Array
     xi_el: Array
+
+
+#: The states that define the dynamics (the rest are energy accumulators).
+DYNAMICAL = Dynamics._fields
 
 
 class Energies(NamedTuple):
@@ -147,14 +146,6 @@ def dynamics(y: ConeState) -> Dynamics:
 def energies(y: ConeState) -> Energies:
     """``y``'s energy accumulators (:class:`Energies`)."""
     return Energies(y.payload_work, y.v2, y.energy_in)
-
-
-def blow_up(blown: Array, y: ConeState) -> ConeState:
-    """``y`` with every leaf NaN where ``blown`` (leading axis = lanes): a lane whose step
-    size collapsed (the lane engine marks it in its step and writes the NaN once per round,
-    not in every step)."""
-    return jax.tree_util.tree_map(
-        lambda a: jnp.where(blown.reshape(blown.shape + (1,) * (a.ndim - 1)), jnp.nan, a), y)
 
 
 def periodicity_residual(y1: ConeState | Dynamics, y0: ConeState | Dynamics) -> Array:
