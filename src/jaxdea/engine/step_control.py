@@ -13,6 +13,7 @@ import math
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -199,9 +200,18 @@ class IController(eqx.Module):
         # check: that was ~9 % of a lane-step)
         ok = norm <= 1.0
         accept = active & ok
-        factor = jnp.clip(self.safety * jnp.where(norm > 0, norm, 1e-10) ** self.exponent,
+        factor = jnp.clip(self.safety * _power(jnp.where(norm > 0, norm, 1e-10), self.exponent),
                           self.factormin, self.factormax)
         factor = jnp.where(jnp.isfinite(norm), factor, self.factormin)
         h_next = jnp.where(accept & clipped, jnp.maximum(h_prev, h * factor), h * factor)
         h_next = jnp.where(active, jnp.minimum(h_next, self.dt_max), h_prev)
         return accept, ok, h_next
+
+
+def _power(x: Array, exponent: float) -> Array:
+    """``x ** exponent`` for ``x > 0``; ``-1/4`` as ``rsqrt(sqrt(x))``: XLA compiles a
+    general power to ``exp(exponent log x)``, and in the lane step that one power cost
+    about as much as a vector-field evaluation's largest kernel (``bench/NOTES.md``)."""
+    if exponent == -0.25:
+        return jax.lax.rsqrt(jnp.sqrt(x))
+    return x ** exponent
