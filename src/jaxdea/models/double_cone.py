@@ -77,11 +77,14 @@ class DCDEA_LS(ConeActuator):
 
     def accelerations(self, q, v, membrane_forces, payload: PayloadLaw):
         fp = self.spring_force(q)
-        acc_a = (membrane_forces[0] - fp) / self.disk_mass
-        acc_b = (membrane_forces[1] + fp - payload.force(q[1], v[1])) / (
-            self.disk_mass + payload.mass
-        )
-        return jnp.stack([acc_a, acc_b])
+        # Elementwise over the two disks, not two scalars stacked: XLA fuses a whole stage of
+        # the vector field into the stack, and on one CPU device it emitted that fusion as a
+        # scalar loop calling a non-inlined function per element (the step's costliest
+        # kernel; bench/NOTES.md)
+        on_b = jnp.arange(2) == 1
+        load = jnp.where(on_b, payload.force(q[1], v[1]), 0.0)
+        mass = jnp.where(on_b, self.disk_mass + payload.mass, self.disk_mass)
+        return (membrane_forces + jnp.where(on_b, fp, -fp) - load) / mass
 
     def static_forces(self, q):
         f = self.membrane.static_force(q)
