@@ -257,6 +257,13 @@ def _scale(c, x):
 
 
 def exp_decay_weights(rate, h):
-    """``(exp(-rate h), 1 - exp(-rate h))`` computed without cancellation for small rate h."""
+    """``(exp(-rate h), 1 - exp(-rate h))``.
+
+    The second weight is ``1 - exp(-x)``, not ``-expm1(-x)``: XLA's CPU ``expm1`` kept the
+    lane step's largest kernel (the input energy's Lawson combination) a scalar loop on one
+    device (``bench/NOTES.md``). Its cancellation below ``x ~ 0.1`` is ~1e-16 in absolute
+    terms, and the weight multiplies ``Phi z_Q`` into the input-energy accumulator, whose own
+    rounding (1e-16 of the energy so far) is larger.
+    """
     decay = jnp.exp(-rate * h)
-    return decay, -jnp.expm1(-rate * h)
+    return decay, 1.0 - decay
