@@ -98,15 +98,31 @@ def _metric_stack(res) -> jax.Array:
     return jnp.stack([getattr(res, k) for k in METRICS], axis=-1)
 
 
-def _settle(build, theta, initial, *, warmup, tol, control, lanes, driven):
-    def one(b, th, y0):
-        act, ld = b(th)
+def _settle(actuator, loadings, initial, *, warmup, tol, control, lanes, driven):
+    """Settle every design's cells (leading axis: designs) from ``initial``.
+
+    It takes the built models, not ``build`` and ``theta``, and always explicit start
+    states: one compiled program then serves every parameterisation of the same model (a
+    :class:`~jaxdea.studies.design.Sub` build and the full one, any parameter names) and
+    every start (rest or a continuation), where it compiled once per build, and once more
+    without start states (4 programs of ~5 s each per peak search: the design tests'
+    compile time was most of their run time)."""
+    def one(act, ld, y0):
         return run_protocol(act, ld, cycles=warmup, average=1, settle=tol, control=control,
                             lanes=lanes, initial=y0, driven=driven)
 
-    if initial is None:
-        return jax.vmap(lambda b, th: one(b, th, None))(build, theta)
-    return jax.vmap(one)(build, theta, initial)
+    return jax.vmap(one)(actuator, loadings, initial)
+
+
+@eqx.filter_jit
+def _built(build, theta):
+    """Every design's ``(actuator, loadings)`` and the rest state of its cells (leaves
+    ``(K, ...)`` and ``(K, C, ...)``): what :func:`_settle` runs."""
+    def one(b, th):
+        act, ld = b(th)
+        return act, ld, rest_states(act, ld)
+
+    return jax.vmap(one)(build, theta)
 
 
 def jacobian_by_columns(f, z0: jax.Array):
@@ -173,8 +189,8 @@ def _shoot(build, theta, y, active, *, params, control, lanes, driven, columns=F
     return jax.vmap(one)(build, theta, y, active)
 
 
-def _settle_split(_, build, theta, initial, **static):
-    return _settle(build, theta, initial, **static)
+def _settle_split(_, actuator, loadings, initial, **static):
+    return _settle(actuator, loadings, initial, **static)
 
 
 def _shoot_split(_, build, theta, y, active, **static):
@@ -189,10 +205,10 @@ def _stages(devices: tuple):
     """The settle and shoot stages over the design axis, split over ``devices`` (each device
     runs its own designs to the end; no collective) or on one device."""
     if len(devices) < 2:
-        return (lambda b, th, y0, **kw: _host(_SETTLE(b, th, y0, **kw)),
+        return (lambda a, ld, y0, **kw: _host(_SETTLE(a, ld, y0, **kw)),
                 lambda b, th, y, a, **kw: _host(_SHOOT(b, th, y, a, columns=True, **kw)))
     settle, shoot = cell_sharded(_settle_split, devices), cell_sharded(_shoot_split, devices)
-    return (lambda b, th, y0, **kw: settle(None, b, th, y0, **kw),
+    return (lambda a, ld, y0, **kw: settle(None, a, ld, y0, **kw),
             lambda b, th, y, a, **kw: shoot(None, b, th, y, a, **kw))
 
 
@@ -258,8 +274,9 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
     lanes = int(min(n_cells, s.lanes))
     settle, shoot = _stages(devices)
     build, th = _pad(build, kp), _pad(theta, kp)
-    init = None if initial is None else _with_rest(build, th, _pad(initial, kp))
-    res = _trim(settle(build, th, init, warmup=int(s.warmup), tol=float(s.tol),
+    actuators, loads, rest = _host(_built(build, jnp.asarray(th)))
+    init = _with_rest(rest, None if initial is None else _pad(initial, kp))
+    res = _trim(settle(actuators, loads, init, warmup=int(s.warmup), tol=float(s.tol),
                        control=s.control, lanes=lanes, driven=driven), k)
     status = np.asarray(res.status).copy()
     y = res.final_state
@@ -317,19 +334,15 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
                         state=final, residual=residual)
 
 
-@eqx.filter_jit
-def _rest(build, theta):
-    """Rest state (static equilibrium) of every cell of every design: leaves ``(K, C, ...)``."""
-    return jax.vmap(lambda b, th: rest_states(*b(th)))(build, theta)
-
-
-def _with_rest(build, theta, initial):
-    """``initial`` with every cell whose start state is not finite set to rest."""
+def _with_rest(rest, initial):
+    """``initial`` with every cell whose start state is not finite set to ``rest`` (all of
+    them where ``initial`` is None)."""
+    if initial is None:
+        return rest
     leaves = jax.tree_util.tree_leaves(initial)
     bad = ~np.all([np.isfinite(a).reshape(a.shape[:2] + (-1,)).all(-1) for a in leaves], 0)
     if not bad.any():
         return initial
-    rest = _host(_rest(build, jnp.asarray(theta)))
     return jax.tree_util.tree_map(
         lambda a, r: np.where(bad.reshape(bad.shape + (1,) * (a.ndim - 2)),
                               r, a), initial, rest)
