@@ -101,12 +101,10 @@ def _metric_stack(res) -> jax.Array:
 def _settle(actuator, loadings, initial, *, warmup, tol, control, lanes, driven):
     """Settle every design's cells (leading axis: designs) from ``initial``.
 
-    It takes the built models, not ``build`` and ``theta``, and always explicit start
-    states: one compiled program then serves every parameterisation of the same model (a
-    :class:`~jaxdea.studies.design.Sub` build and the full one, any parameter names) and
-    every start (rest or a continuation), where it compiled once per build, and once more
-    without start states (4 programs of ~5 s each per peak search: the design tests'
-    compile time was most of their run time)."""
+    It takes the built models (:func:`_built`), not ``build`` and ``theta``, and always
+    explicit start states: one compiled program then serves every parameterisation of the
+    same model (a :class:`~jaxdea.studies.design.Sub` build and the full one, any parameter
+    names) and every start (rest or a continuation). Measured: ``docs/performance.md``."""
     def one(act, ld, y0):
         return run_protocol(act, ld, cycles=warmup, average=1, settle=tol, control=control,
                             lanes=lanes, initial=y0, driven=driven)
@@ -268,13 +266,15 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
     if not stacked:
         build = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k,) + jnp.shape(a)),
                                        build)
-    _, ld0 = jax.tree_util.tree_map(lambda a: a[0], build)(jnp.asarray(theta[0]))
+    build, th = _pad(build, kp), _pad(theta, kp)
+    # every design built once: the settling runs these models, and design 0's cells give
+    # the driven membranes and the cell count
+    actuators, loads, rest = _host(_built(build, jnp.asarray(th)))
+    ld0 = jax.tree_util.tree_map(lambda a: a[0], loads)
     driven = driven_membranes(ld0)
     n_cells = int(ld0.drive.frequency.shape[0])
     lanes = int(min(n_cells, s.lanes))
     settle, shoot = _stages(devices)
-    build, th = _pad(build, kp), _pad(theta, kp)
-    actuators, loads, rest = _host(_built(build, jnp.asarray(th)))
     init = _with_rest(rest, None if initial is None else _pad(initial, kp))
     res = _trim(settle(actuators, loads, init, warmup=int(s.warmup), tol=float(s.tol),
                        control=s.control, lanes=lanes, driven=driven), k)
