@@ -92,19 +92,21 @@ def case_builder(model: Model, names, case: Case, mass: float, freq, damping):
     return eqx.tree_at(lambda b: b.damping, build, jnp.asarray(damping, float))
 
 
-def _paper(_, build, theta, *, cycles, average, settle, control, lanes, driven):
-    def one(b, th):
+def _paper(_, build, theta, active, *, cycles, average, settle, control, lanes, driven):
+    def one(b, th, on):
         act, ld = b(th)
         r = run_protocol(act, ld, cycles=cycles, average=average, settle=settle,
-                         require_settled=False, control=control, lanes=lanes, driven=driven)
+                         require_settled=False, control=control, lanes=lanes, driven=driven,
+                         active=on)
         return jnp.stack([r.P_out, r.P_in]), r.status, r.final_state
 
-    return jax.vmap(one)(build, theta)
+    return jax.vmap(one)(build, theta, active)
 
 
-def _run(build, theta, search: PeakSearch, devices):
+def _run(build, theta, search: PeakSearch, devices, n_real: int):
     """``(P (K, C, 2): P_out and P_in, status (K, C), final states (K, C, ...))`` of stacked
-    builds (leading design axis) at ``theta`` (K, n)."""
+    builds (leading design axis) at ``theta`` (K, n), for their first ``n_real`` cells (the
+    others are padding, not run: :func:`_stacked`)."""
     k = theta.shape[0]
     devices = tuple(devices)[:k]
     rows = padded_cells(0, -(-k // len(devices)) * len(devices), k)  # whole per device
@@ -113,19 +115,29 @@ def _run(build, theta, search: PeakSearch, devices):
     _, ld0 = jax.tree_util.tree_map(lambda a: a[0] if eqx.is_array(a) else a,
                                     build)(jnp.asarray(theta[0]))
     n_cells = int(ld0.drive.frequency.shape[0])
+    active = np.broadcast_to(np.arange(n_cells) < n_real, (rows.size, n_cells))
     p, status, state = cell_sharded(_paper, devices)(
-        None, build, jnp.asarray(theta[rows]), cycles=search.cycles, average=search.average,
+        None, build, jnp.asarray(theta[rows]), jnp.asarray(active),
+        cycles=search.cycles, average=search.average,
         settle=search.early_exit, control=search.control,
         lanes=int(min(n_cells, search.lanes)), driven=driven_membranes(ld0))
-    p = np.moveaxis(np.asarray(p)[:k], 1, -1)
-    state = jax.tree_util.tree_map(lambda a: np.asarray(a)[:k], state)
-    return (np.where(np.asarray(status)[:k, :, None] == 0, p, np.nan),
-            np.asarray(status)[:k], state)
+    p = np.moveaxis(np.asarray(p)[:k, :, :n_real], 1, -1)
+    state = jax.tree_util.tree_map(lambda a: np.asarray(a)[:k, :n_real], state)
+    status = np.asarray(status)[:k, :n_real]
+    return np.where(status[:, :, None] == 0, p, np.nan), status, state
 
 
-def _stacked(model, names, case, mass, freq, damping):
-    """Builds of ``case`` for every design (rows of ``freq`` / ``damping``), stacked."""
-    return stack_designs([case_builder(model, names, case, mass, f, c)
+def _stacked(model, names, case, mass, freq, damping, size: int):
+    """Builds of ``case`` for every design (rows of ``freq`` / ``damping``), stacked, each
+    padded to ``size`` cells by repeating its last cell.
+
+    Why the padding: a case's coarse and fine stages then have the same shape and share one
+    compiled program (the padding cells are not run: :func:`_run`'s ``active``)."""
+    def pad(a):
+        a = np.asarray(a, float)
+        return np.concatenate([a, np.full(size - a.size, a[-1])])
+
+    return stack_designs([case_builder(model, names, case, mass, pad(f), pad(c))
                           for f, c in zip(freq, damping)])
 
 
@@ -188,8 +200,11 @@ def peak_table(models: dict[str, Model], names, theta, *, mass: float, dampings,
         model = models[case.config]
         ff = np.tile(fc, len(cs))
         cc = np.repeat(cs, fc.size)
-        build = _stacked(model, names, case, mass, [ff] * k, [cc] * k)
-        p, _, _ = _run(build, theta, search, devices)
+        n_fine = offsets.size * sum(  # the fine grids' cells, as counted below
+            1 + sum(1 for ln, lc in local if ln == name and np.isclose(lc, c)) for c in cs)
+        size = max(ff.size, n_fine)  # both stages of the case in one compiled shape
+        build = _stacked(model, names, case, mass, [ff] * k, [cc] * k, size)
+        p, _, _ = _run(build, theta, search, devices, ff.size)
         out["cells"] += p.shape[0] * p.shape[1]
         pc = p[..., 0].reshape(k, cs.size, fc.size)
         # fine grids: one per damping (global peak) and one per local sub-band
@@ -207,8 +222,9 @@ def peak_table(models: dict[str, Model], names, theta, *, mass: float, dampings,
         fine = np.stack([np.clip(c0[:, None] + offsets, search.band[0] * 0.5, None)
                          for c0 in centres], 1)  # (K, R, F)
         damp = np.broadcast_to(np.array([cs[j] for _, j in rows])[None, :, None], fine.shape)
-        build = _stacked(model, names, case, mass, fine.reshape(k, -1), damp.reshape(k, -1))
-        p, _, state = _run(build, theta, search, devices)
+        build = _stacked(model, names, case, mass, fine.reshape(k, -1), damp.reshape(k, -1),
+                         size)
+        p, _, state = _run(build, theta, search, devices, fine[0].size)
         out["cells"] += p.shape[0] * p.shape[1]
         p = p.reshape(fine.shape + (2,))
         state = jax.tree_util.tree_map(lambda a: a.reshape(fine.shape + a.shape[2:]), state)
