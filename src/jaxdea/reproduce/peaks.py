@@ -223,7 +223,7 @@ def peak_table(models: dict[str, Model], names, theta, *, mass: float, dampings,
                          for c0 in centres], 1)  # (K, R, F)
         damp = np.broadcast_to(np.array([cs[j] for _, j in rows])[None, :, None], fine.shape)
         build = _stacked(model, names, case, mass, fine.reshape(k, -1), damp.reshape(k, -1),
-                         size)
+                         max(size, fine[0].size))
         p, _, state = _run(build, theta, search, devices, fine[0].size)
         out["cells"] += p.shape[0] * p.shape[1]
         p = p.reshape(fine.shape + (2,))
