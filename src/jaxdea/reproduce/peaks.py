@@ -135,7 +135,7 @@ def _stacked(model, names, case, mass, freq, damping, size: int):
     compiled program (the padding cells are not run: :func:`_run`'s ``active``)."""
     def pad(a):
         a = np.asarray(a, float)
-        return np.concatenate([a, np.full(size - a.size, a[-1])])
+        return a[padded_cells(0, size, a.size)]
 
     return stack_designs([case_builder(model, names, case, mass, pad(f), pad(c))
                           for f, c in zip(freq, damping)])
@@ -200,30 +200,29 @@ def peak_table(models: dict[str, Model], names, theta, *, mass: float, dampings,
         model = models[case.config]
         ff = np.tile(fc, len(cs))
         cc = np.repeat(cs, fc.size)
-        n_fine = offsets.size * sum(  # the fine grids' cells, as counted below
-            1 + sum(1 for ln, lc in local if ln == name and np.isclose(lc, c)) for c in cs)
-        size = max(ff.size, n_fine)  # both stages of the case in one compiled shape
+        # fine grids: one per damping (global peak) and one per local sub-band, as
+        # (local key or None, damping index)
+        rows = [row for j, c in enumerate(cs) for row in [(None, j)] + [
+            ((ln, lc), j) for ln, lc in local if ln == name and np.isclose(lc, c)]]
+        size = max(ff.size, len(rows) * offsets.size)  # both stages in one compiled shape
         build = _stacked(model, names, case, mass, [ff] * k, [cc] * k, size)
         p, _, _ = _run(build, theta, search, devices, ff.size)
         out["cells"] += p.shape[0] * p.shape[1]
         pc = p[..., 0].reshape(k, cs.size, fc.size)
-        # fine grids: one per damping (global peak) and one per local sub-band
-        centres, rows = [], []
         safe = np.where(np.isfinite(pc), pc, -np.inf)
-        for j, c in enumerate(cs):
-            centres.append(fc[np.argmax(safe[:, j], axis=1)])
-            rows.append((None, j))
-            for (ln, lc), (lo, hi) in local.items():
-                if ln == name and np.isclose(lc, c):
-                    inside = (fc >= lo) & (fc <= hi)
-                    sub = np.where(inside, safe[:, j], -np.inf)
-                    centres.append(fc[np.argmax(sub, axis=1)])
-                    rows.append(((ln, lc), j))
+        centres = []
+        for key, j in rows:
+            if key is None:
+                centres.append(fc[np.argmax(safe[:, j], axis=1)])
+            else:
+                lo, hi = local[key]
+                sub = np.where((fc >= lo) & (fc <= hi), safe[:, j], -np.inf)
+                centres.append(fc[np.argmax(sub, axis=1)])
         fine = np.stack([np.clip(c0[:, None] + offsets, search.band[0] * 0.5, None)
                          for c0 in centres], 1)  # (K, R, F)
         damp = np.broadcast_to(np.array([cs[j] for _, j in rows])[None, :, None], fine.shape)
         build = _stacked(model, names, case, mass, fine.reshape(k, -1), damp.reshape(k, -1),
-                         max(size, fine[0].size))
+                         size)
         p, _, state = _run(build, theta, search, devices, fine[0].size)
         out["cells"] += p.shape[0] * p.shape[1]
         p = p.reshape(fine.shape + (2,))
