@@ -257,10 +257,11 @@ def test_chord_columns_repeat_the_stage_by_stage_chain_iteration_for_iteration(m
     history, j = start()  # the reference: one stage at a time
     recent, expect = ok, {}
     for stage in range(damping.size - 2, -1, -1):
-        r, new_j, conv = chord_cells(model.actuator, take_cells(loadings, slots[:, stage]),
-                                     with_dynamical(seed, predict(history)), j, **kw)
+        r, new_j, conv, orbit = chord_cells(model.actuator,
+                                            take_cells(loadings, slots[:, stage]),
+                                            with_dynamical(seed, predict(history)), j, **kw)
         j = np.where(conv[:, None, None], new_j, j)
-        history = remember(history, np.asarray(flatten_dynamical(r.final_state)), conv, recent)
+        history = remember(history, orbit, conv, recent)
         recent = conv
         for col in range(3):
             expect[slots[col, stage]] = (int(r.cycles_run[col]), int(r.steps[col]),

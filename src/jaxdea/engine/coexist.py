@@ -303,7 +303,7 @@ def solve_from(actuator: ConeActuator, loadings: Loading, results: CycleMetrics,
     def chord(known):
         return lambda ld, start, sub, real: chord_cells(
             actuator, ld, start, np.asarray(jacobians[where[sub]], np.float64) if known else
-            np.full((sub.size, d, d), np.nan), active=real, **kw)
+            np.full((sub.size, d, d), np.nan), active=real, **kw)[:3]
 
     def settled(ld, start, sub, real):
         r = periodic_cells(actuator, ld, initial=start, active=real, warmup=FOLLOW_CYCLES, **kw)

@@ -178,14 +178,13 @@ def first_stage(actuator: ConeActuator, loadings: Loading, block: np.ndarray,
         go = mine & np.isfinite(guess).all(axis=1)
         tried |= go
         start = with_dynamical(res.final_state, np.where(go[:, None], guess, 0.0))
-        r, new_jac, conv = chord_cells(actuator, loadings, start, jac[partner], lanes=lanes,
-                                       active=go, **kw)
+        r, new_jac, conv, orbit = chord_cells(actuator, loadings, start, jac[partner],
+                                              lanes=lanes, active=go, **kw)
         res = to_host(select_cells(go, r, res))
         jac = np.where(go[:, None, None], new_jac, jac)
         ok = np.where(mine, go & conv, ok)
-        flat = np.asarray(flatten_dynamical(r.final_state))
         history = np.where(mine[None, :, None],
-                           remember(behind, flat, ok, ok[partner]), history)
+                           remember(behind, orbit, ok, ok[partner]), history)
     late = (block != blocks[0]) & ~ok
     if late.any():  # as start="rest" would, with Jacobians for the stages after
         r, js = periodic_cells(actuator, loadings, lanes=lanes, with_jacobian=True,
@@ -276,8 +275,7 @@ def chord_columns(actuator: ConeActuator, loadings: Loading, slots: np.ndarray,
         where = np.nonzero(done)[0]
         metrics, ok = it.metrics(where), it.converged[where]
         yield where, slots[where, stage[where]], metrics, ok, it.jac[where]
-        flat = flatten_dynamical(it.out.final_state)[where]
-        history[:, where] = remember(history[:, where], flat, ok, recent[where])
+        history[:, where] = remember(history[:, where], it.orbit[where], ok, recent[where])
         recent[where] = ok
         it.jac[where] = np.where(ok[:, None, None], it.jac[where], start_jac[where])
         stage[where] -= 1
