@@ -193,6 +193,25 @@ def test_newton_solve_survives_singular_and_non_finite_cells():
     assert np.allclose(rho, [1.5, 1.0])
 
 
+def test_radius_above_decides_as_the_eigenvalues_do():
+    """The power-norm screen of ``radius_above`` (a Jacobian in SI units, far from normal)
+    never changes a stability decision: the same as comparing numpy's eigenvalues."""
+    from jaxdea.engine.periodic import floquet_radius, radius_above
+
+    rng = np.random.default_rng(3)
+    scale = np.diag([1e-7, 1e-3, 1.0, 10.0, 1e4])  # charge, displacement, ... magnitudes
+    jac = scale @ (rng.normal(size=(4000, 5, 5)) * rng.uniform(0.05, 0.45, (4000, 1, 1))) \
+        @ np.linalg.inv(scale)
+    jac[0], jac[1], jac[2] = np.nan, 0.0, np.diag([0.98, 0.1, 0.1, 0.1, 0.1])
+    jac[3] = np.diag([0.9799, 0.1, 0.1, 0.1, 0.1])
+    rho = floquet_radius(jac)
+    for bound in (0.5, 0.98, 1.001):
+        above = radius_above(jac, bound)
+        assert (above == ~(rho <= bound)).all()
+        assert 0.02 < above.mean() < 0.98  # both outcomes exercised
+    assert radius_above(jac, 0.98)[0] and not radius_above(jac, 0.98)[1:4].any()
+
+
 def test_periodic_protocol_reports_what_the_actuator_reaches(ls40):
     """At 40 kV, Newton shooting from a trajectory that never settles used to end in a
     reported Gent lock-up (the extrapolated iterate locked up, not the actuator) or on an

@@ -21,9 +21,9 @@ from .periodic import (
     PER_CELL,
     STABLE_MULTIPLIER,
     flatten_dynamical,
-    floquet_radius,
     newton_step,
     one_period,
+    radius_above,
     settle_pools,
     settle_program,
     shoot_period,
@@ -173,14 +173,16 @@ class Chord:
         it.out = r if it.out is None else pick(pending, r, it.out)
         it.steps += np.where(pending, np.asarray(r.steps), 0)
         it.cycles += np.where(pending, np.asarray(r.cycles_run), 0)
-        secant = pending & np.isfinite(it.prev[0]).all(axis=1)
-        if secant.any():  # Broyden's update of J - I from the secant of this iteration
-            dx, dg = flat - it.prev[0], gap - it.prev[1]
+        secant = np.flatnonzero(pending & np.isfinite(it.prev[0]).all(axis=1))
+        if secant.size:  # Broyden's update of J - I from the secant of this iteration
+            dx, dg = flat[secant] - it.prev[0][secant], gap[secant] - it.prev[1][secant]
+            jac = it.jac[secant]
             with np.errstate(invalid="ignore"):
-                miss = dg - np.einsum("nij,nj->ni", it.jac - np.eye(it.jac.shape[-1]), dx)
+                miss = dg - np.einsum("nij,nj->ni", jac - np.eye(jac.shape[-1]), dx)
                 upd = miss[:, :, None] * dx[:, None, :] / np.maximum(
                     np.einsum("ni,ni->n", dx, dx), 1e-300)[:, None, None]
-            it.jac = np.where(secant[:, None, None], it.jac + upd, it.jac)
+            it.jac = it.jac.copy()
+            it.jac[secant] = jac + upd
         ok = np.asarray(r.status) == 0
         step = newton_step(it.jac, gap, pending & ok)
         size = np.asarray(step_residual(y, step))
@@ -198,7 +200,7 @@ class Chord:
         """Which of the converged cells ``where`` need a shot to show that they are stable:
         those whose updated Jacobian puts the Floquet radius above :data:`VERIFY_RADIUS`."""
         doubt = where.copy()
-        doubt[where] = ~(floquet_radius(it.jac[where]) <= VERIFY_RADIUS)
+        doubt[where] = radius_above(it.jac[where], VERIFY_RADIUS)
         return doubt
 
     def unstable(self, loadings, seed, it: Iterates, doubt):
@@ -212,7 +214,7 @@ class Chord:
                                       **self.shot_kw))
         it.jac = np.where(doubt[:, None, None], np.asarray(js), it.jac)
         bad = doubt.copy()
-        bad[doubt] = ~(floquet_radius(it.jac[doubt]) <= STABLE_MULTIPLIER)
+        bad[doubt] = radius_above(it.jac[doubt], STABLE_MULTIPLIER)
         return bad
 
 
