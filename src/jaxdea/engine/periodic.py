@@ -129,7 +129,8 @@ def shoot_period(actuator, loadings, y, active, *, control, lanes, driven):
         # one pool: every shooting cell runs one period, there is no tail to compact
         res = run_protocol(actuator, loadings, cycles=1, average=1,
                            initial=with_dynamical(y, flat + delta), active=active,
-                           control=control, pools=(lanes,), driven=driven)
+                           control=control, pools=(lanes,), driven=driven,
+                           frozen_steps=True)
         out = flatten_dynamical(res.final_state)
         return out, (out, res)
 
