@@ -230,14 +230,9 @@ def run_protocol(
     source voltage is non-zero in some cell (static; default all). The energy returned to
     the source is integrated for these only (for two membranes ~20 % of a lane-step).
 
-    ``frozen_steps``: differentiated (``jax.jvp``, ``jax.jacfwd``), the step sizes count as
-    constants: no tangent flows through the error estimate into the controller's choice.
-    A one-period Jacobian for Newton's method and the Floquet radii
-    (:func:`~jaxdea.engine.periodic.shoot_period`) costs 0.55x the time so (128 DCDEA-LS
-    cells at 20-199 Hz: 0.104 s against 0.187 s), within 3e-5 (median, relative) of the
-    algorithm's own derivative and 1.1e-4 on the radius. Off for design gradients: with the
-    duty, the voltage or ``R_s`` as the parameter, such derivatives of P_out and the
-    efficiency missed central differences by up to 1e-3 (``tests/test_design_gradients.py``).
+    ``frozen_steps``: differentiated, the step sizes count as constants (no tangent through
+    the error estimate into the controller): a shot's Jacobian at 0.55x the cost, too coarse
+    for design gradients (``bench/NOTES.md``; :func:`~jaxdea.engine.periodic.shoot_period`).
     """
     if isinstance(cycles, int) and isinstance(average, int):
         if not 1 <= average <= cycles:
