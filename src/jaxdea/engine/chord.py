@@ -187,9 +187,9 @@ class Chord:
         step = newton_step(it.jac, gap, pending & ok)
         size = np.asarray(step_residual(y, step))
         newly = pending & ok & (size < self.tol)
-        it.pending = pending & ok & ~newly & np.isfinite(step).all(axis=1)
-        it.prev = (flat, gap)
         stepped = pending & ok & np.isfinite(step).all(axis=1)
+        it.pending = stepped & ~newly
+        it.prev = (flat, gap)
         it.orbit = np.where(stepped[:, None], flat + step,
                             np.where(pending[:, None], flat + gap, it.orbit))
         it.flat = flat + np.where(it.pending[:, None], step, 0.0)

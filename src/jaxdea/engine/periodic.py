@@ -211,6 +211,10 @@ def floquet_radius(jac: np.ndarray) -> np.ndarray:
     return np.where(fine, np.abs(np.linalg.eigvals(safe)).max(axis=-1), np.nan)
 
 
+#: Squarings of :func:`radius_above`'s bound (``k = 2^8``).
+RADIUS_SQUARINGS = 8
+
+
 def radius_above(jac: np.ndarray, bound: float) -> np.ndarray:
     """Whether each one-period map's Floquet radius is above ``bound`` (true where its
     Jacobian is not finite): ``~(floquet_radius(jac) <= bound)``, with the eigenvalues
@@ -235,8 +239,9 @@ def radius_above(jac: np.ndarray, bound: float) -> np.ndarray:
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
         for _ in range(RADIUS_SQUARINGS):
             norm = np.abs(power).sum(axis=2).max(axis=1)
-            power = power / np.where(norm > 0, norm, 1.0)[:, None, None]
-            log_scale = 2.0 * (log_scale + np.log(np.where(norm > 0, norm, 1.0)))
+            norm = np.where(norm > 0, norm, 1.0)  # a zero matrix stays zero
+            power = power / norm[:, None, None]
+            log_scale = 2.0 * (log_scale + np.log(norm))
             power = power @ power
         norm = np.abs(power).sum(axis=2).max(axis=1)
         log_bound = (log_scale + np.log(norm)) / 2.0 ** RADIUS_SQUARINGS
@@ -245,10 +250,6 @@ def radius_above(jac: np.ndarray, bound: float) -> np.ndarray:
     check = np.flatnonzero(fine & ~below)
     above[check] = ~(floquet_radius(jac[check]) <= bound)
     return above
-
-
-#: Squarings of :func:`radius_above`'s bound (``k = 2^8``).
-RADIUS_SQUARINGS = 8
 
 
 #: Lane pool of the shooting stage. Its lanes carry the d forward-mode tangents of

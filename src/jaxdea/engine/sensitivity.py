@@ -41,8 +41,8 @@ from .lanes import rest_states, run_protocol
 from .periodic import (
     STABLE_MULTIPLIER,
     flatten_dynamical,
-    floquet_radius,
     newton_step,
+    radius_above,
     solve_cells,
     step_residual,
     with_dynamical,
@@ -306,8 +306,9 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
         ok = np.asarray(r.status) == 0
         converged = pending & ok & (size < s.tol)
         # an unstable orbit is not a steady state the actuator reaches: status 4
-        unstable = converged & ~(floquet_radius(j_out[..., :d].reshape(-1, d, d)).reshape(
-            k, n_cells) <= STABLE_MULTIPLIER)
+        unstable = converged.copy()
+        unstable[converged] = radius_above(np.asarray(j_out)[..., :d][converged],
+                                           STABLE_MULTIPLIER)
         status = np.where(unstable, 4, status)
         pending = pending & ~unstable
         converged = converged & ~unstable
