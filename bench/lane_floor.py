@@ -44,7 +44,7 @@ def make(model, parts: tuple[str, ...], n_step: int, rounds: bool, lean: bool = 
     import jax
     import jax.numpy as jnp
 
-    from jaxdea.engine.lanes import cycle_nodes
+    from jaxdea.engine.lane_state import cycle_nodes
     from jaxdea.engine.metrics import dynamics, energies, hermite_extrema, periodicity_residual
     from jaxdea.engine.step_control import IController, charge_weight
     from jaxdea.solver import LawsonRK4, SemilinearTerm

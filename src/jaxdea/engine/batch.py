@@ -16,8 +16,10 @@ import numpy as np
 
 from .._checks import ConfigError, SweepError, check_choice, check_early_exit, check_protocol
 from ..models.cone import Loading, Model
-from .lanes import rest_states, run_protocol
+from .lane_state import rest_states
+from .lanes import run_protocol
 from .metrics import CycleMetrics
+from .paper import run_paper
 from .precision import check_precision
 from .protocols import (
     DIRECTIONS,
@@ -31,6 +33,8 @@ from .sharding import cell_sharded, on_accelerator
 from .step_control import StepControl, check_control
 
 _run = eqx.filter_jit(run_protocol)
+
+_run_paper = eqx.filter_jit(run_paper)
 
 _rest_states = eqx.filter_jit(rest_states)
 
@@ -46,6 +50,14 @@ def run_from_rest(actuator, loadings, successor, *, cycles, average, control, la
     return run_protocol(actuator, loadings, cycles=cycles, average=average, control=control,
                         lanes=lanes, successor=successor, settle=early_exit,
                         require_settled=False, driven=driven)
+
+
+def run_paper_from_rest(actuator, loadings, *, cycles, average, control, lanes, early_exit,
+                        driven=None):
+    """The papers' protocol on one device's independent cells from rest, in two passes
+    (:func:`~jaxdea.engine.paper.run_paper`)."""
+    return run_paper(actuator, loadings, cycles=cycles, average=average, control=control,
+                     lanes=lanes, settle=early_exit, driven=driven)
 
 
 def driven_membranes(loadings: Loading) -> tuple[int, ...]:
@@ -147,13 +159,14 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     if protocol == "paper" and initial is None:  # independent cells: schedule them
         lanes = lanes or default_lanes(local, devices)
         if len(devices) > 1:
-            run = lambda ld: cell_sharded(run_from_rest, devices)(  # noqa: E731
-                model.actuator, ld, jnp.full(local * len(devices), local, jnp.int32),
-                cycles=int(cycles), average=int(average), control=control, lanes=lanes,
-                early_exit=early_exit, driven=driven)
+            run = lambda ld: cell_sharded(run_paper_from_rest, devices)(  # noqa: E731
+                model.actuator, ld, cycles=int(cycles), average=int(average), control=control,
+                lanes=lanes, early_exit=early_exit, driven=driven)
         else:
-            run = lambda ld: _run_engine(model, ld, cycles, average, control, lanes,  # noqa
-                                         None, np.full(n, n), early_exit, driven)
+            run = lambda ld: _run_paper(  # noqa: E731
+                model.actuator, ld, cycles=jnp.asarray(cycles, jnp.int32),
+                average=jnp.asarray(average, jnp.int32), control=control, lanes=lanes,
+                settle=early_exit, driven=driven)
         return _dealt_run(run, loadings, n, devices)
     if protocol == "paper" or successor is None:
         successor = np.full(n, n)

@@ -179,7 +179,7 @@ def record(lane, cycles, average):
 
     **Arguments:**
 
-    - `lane`: the engine's pool of lanes (:class:`jaxdea.engine.lanes._Lane`, leading axis
+    - `lane`: the engine's pool of lanes (:class:`jaxdea.engine.lane_state.Lane`, leading axis
       = lanes) at the end of a round.
     - `cycles`, `average`: the protocol's cycle budget and averaged cycles.
 

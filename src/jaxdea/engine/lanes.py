@@ -59,10 +59,9 @@ from jaxtyping import Array
 from ..models.cone import ConeActuator, ConeState, Loading
 from ..solver import ExponentialRK4, LawsonRK4, SemilinearTerm
 from . import extrapolate as _extrapolate
+from .lane_state import Lane, cycle_nodes, reset_accumulators, rest_states, select_cells
 from .metrics import (
     CycleMetrics,
-    Dynamics,
-    Energies,
     all_finite,
     dynamics,
     energies,
@@ -73,59 +72,6 @@ from .metrics import (
 )
 from .precision import SINGLE_CHARGE_WEIGHT_MIN, narrow, narrow_states, widen_states
 from .step_control import IController, StepControl, charge_weight
-
-
-def cycle_nodes(loading: Loading) -> Array:
-    """Sorted step boundaries within one period, as fractions in (0, 1]: every edge and 1."""
-    e = loading.drive.edge_fractions()
-    e = jnp.where(e < 1e-12, 1.0, e)
-    return jnp.sort(jnp.concatenate([e, jnp.ones(1)]))
-
-
-def select_cells(mask: Array, a, b):
-    """Per cell (leading axis), ``a``'s leaves where ``mask`` is true, else ``b``'s."""
-    return jax.tree_util.tree_map(
-        lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
-
-
-def reset_accumulators(y: ConeState) -> ConeState:
-    """``y`` with the energy integrals set to zero (a new cell starts its own bookkeeping)."""
-    return eqx.tree_at(lambda s: (s.payload_work, s.v2, s.energy_in), y,
-                       (jnp.zeros_like(y.payload_work), jnp.zeros_like(y.v2),
-                        jnp.zeros_like(y.energy_in)))
-
-
-class _Lane(eqx.Module):
-    job: Array  # cell index, or n_cells when idle
-    y: ConeState
-    loading: Loading
-    nodes: Array  # sorted step boundaries within a cycle (fractions, last = 1)
-    cycle: Array  # completed cycles
-    u: Array  # current position in the cycle, fraction in [0, 1)
-    h: Array  # proposed next step, s
-    steps: Array
-    window: Energies  # energy accumulators at the start of the averaging window
-    wcycle: Array  # completed cycles when the averaging window started
-    prev: Dynamics  # dynamical states at the start of the current cycle
-    res: Array  # periodicity residual of the last completed cycle
-    ratio: Array  # residual of the last cycle over that of the one before
-    rate: Array  # contraction per cycle: the larger of the last two ratios
-    back: Array  # energy returned to each driven source in the window (<= 0), J
-    xmin: Array
-    xmax: Array
-    lockup: Array
-    blown: Array  # the step size collapsed; the state becomes NaN at the round's end
-    done: Array
-    history: Array  # cycle-start states for the transient's extrapolation (empty when off)
-    recorded: Array  # the last cycle whose start state is in history (empty when off)
-    streak: Array  # consecutive cycle-start states in history; < 0 after a jump (empty: off)
-    origin: Array  # the cycle-start state a lane jumped from, flattened (empty when off)
-    landing: Array  # the state it jumped to, flattened (empty when off)
-    jumped_from: Array  # the cycle it jumped from until the jump is checked, else -1
-    expect: Array  # the difference the fit predicted after the landing (empty when off)
-    guess: Array  # the lane's last prediction of its jump's landing, flattened (empty: off)
-    guessed: Array  # the cycle that prediction was made at, else -1 (empty when off)
-
 
 #: Smallest lane pool that gets a smaller pool for the end of its batch (:func:`lane_pools`).
 TAIL_FROM = 64
@@ -175,17 +121,6 @@ def lane_pools(n_lanes: int, strict: bool = False) -> tuple[int, ...]:
     return (*wide, n, 8)
 
 
-def rest_states(model, loadings: Loading) -> ConeState:
-    """The rest state of every cell (leading axis = cells): the static equilibrium with the
-    cell's payload on (:meth:`~jaxdea.models.cone.ConeActuator.initial_state`). Without a
-    payload that loads the disk at rest every cell rests at the same state."""
-    n = jax.tree_util.tree_leaves(loadings)[0].shape[0]
-    if not loadings.payload.loads_at_rest:
-        rest = model.initial_state()
-        return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), rest)
-    return jax.vmap(model.initial_state)(loadings.payload)
-
-
 def run_protocol(
     model: ConeActuator,
     loadings: Loading,
@@ -196,6 +131,7 @@ def run_protocol(
     lanes: int | None = None,
     steps_per_round: int = 16,
     initial: ConeState | None = None,
+    initial_step: Array | None = None,
     successor: Array | None = None,
     active: Array | None = None,
     settle: float | None = None,
@@ -203,6 +139,7 @@ def run_protocol(
     pools: tuple[int, ...] | None = None,
     driven: tuple[int, ...] | None = None,
     frozen_steps: bool = False,
+    metrics: bool = True,
 ) -> CycleMetrics:
     """Run ``cycles`` periods from rest for every cell of ``loadings`` (leading axis = cells)
     and average the last ``average`` periods. Jittable; ``model`` is shared by all cells.
@@ -223,7 +160,8 @@ def run_protocol(
     steady states), else the ordinary status (the papers' protocol with an early exit).
 
     ``cycles`` and ``average`` may be integer arrays (traced under jit: one compiled engine
-    for every cycle count; their range is then the caller's to check).
+    for every cycle count; their range is then the caller's to check), one per cell
+    (``(n_cells,)``) or one for all.
 
     ``pools``: the lane-pool sizes the batch runs through, widest first (default
     :func:`lane_pools`; the first entry replaces ``lanes``). ``driven``: the membranes whose
@@ -233,6 +171,12 @@ def run_protocol(
     ``frozen_steps``: differentiated, the step sizes count as constants (no tangent through
     the error estimate into the controller): a shot's Jacobian at 0.55x the cost, too coarse
     for design gradients (``bench/NOTES.md``; :func:`~jaxdea.engine.periodic.shoot_period`).
+
+    ``initial_step``: per cell, the first step to try, s (default ``min(dt_max, T / 200)``).
+    ``metrics=False``: the transient only (:mod:`jaxdea.engine.paper`): no window bookkeeping
+    (payload extrema, returned energy, window records; 0.70x the lane-step), so the outputs'
+    metrics are meaningless (final states, residuals, statuses and counts are as usual);
+    returns ``(metrics, h)``, ``h`` each cell's next step (its ``initial_step`` to go on).
     """
     if isinstance(cycles, int) and isinstance(average, int):
         if not 1 <= average <= cycles:
@@ -242,6 +186,8 @@ def run_protocol(
     elif not (hasattr(cycles, "dtype") and hasattr(average, "dtype")):
         raise ValueError(f"cycles and average must be integers, got {cycles!r}, {average!r}")
     n_cells = jax.tree_util.tree_leaves(loadings)[0].shape[0]
+    budget = jnp.broadcast_to(jnp.asarray(cycles, jnp.int32), (n_cells,))
+    average_of = jnp.broadcast_to(jnp.asarray(average, jnp.int32), (n_cells,))
     if pools is None:
         pools = lane_pools(int(min(n_cells, lanes or 32)), strict=settle is None)
     if not pools or any(p < 1 for p in pools) or list(pools) != sorted(pools, reverse=True):
@@ -275,12 +221,14 @@ def run_protocol(
     jump = control.extrapolate if (settle is None or not require_settled) else None
     if isinstance(cycles, int) and cycles < _extrapolate.HISTORY + 3:
         jump = None
+    if jump is not None and (jnp.ndim(cycles) or jnp.ndim(average)):
+        raise ValueError("StepControl.extrapolate needs one cycles/average for all cells")
     # per-lane shapes of the extrapolation's records: empty when it is off
     hist_shape = (_extrapolate.HISTORY, _extrapolate.flatten(y0).size) if jump is not None \
         else (0, 0)
     count_shape = () if jump is not None else (0,)
 
-    def charge_error_weight(lane: _Lane):
+    def charge_error_weight(lane: Lane):
         """The charge's error weight of the lane's cell (``step_control.charge_weight``); in
         single precision at least :data:`~jaxdea.engine.precision.SINGLE_CHARGE_WEIGHT_MIN`."""
         w = charge_weight(lane.loading.drive.frequency)
@@ -302,20 +250,23 @@ def run_protocol(
         safe = jnp.minimum(idx, n_cells - 1)
         return reset_accumulators(jax.tree_util.tree_map(lambda a: a[safe], initial))
 
-    def fresh(idx: Array, y: ConeState) -> _Lane:
+    def fresh(idx: Array, y: ConeState) -> Lane:
         """Lanes starting cell ``idx`` from ``y`` (``idx >= n_cells``: idle lane)."""
         safe = jnp.minimum(idx, n_cells - 1)
         loading = jax.tree_util.tree_map(lambda a: a[safe], loadings)
         period = 1.0 / loading.drive.frequency
         n = idx.shape[0]
-        return _Lane(
+        return Lane(
             job=jnp.where(idx < n_cells, idx, n_cells),
             y=y,
             loading=loading,
             nodes=jax.vmap(cycle_nodes)(loading),
             cycle=jnp.zeros(n, jnp.int32),
+            budget=budget[safe],
+            average=average_of[safe],
             u=jnp.zeros(n),
-            h=jnp.minimum(control.dt_max, period / 200.0),
+            h=(jnp.minimum(control.dt_max, period / 200.0) if initial_step is None
+               else jnp.asarray(initial_step, period.dtype)[safe]),
             steps=jnp.zeros(n, jnp.int32),
             window=energies(y),
             wcycle=jnp.zeros(n, jnp.int32),
@@ -340,11 +291,11 @@ def run_protocol(
             guessed=jnp.full((n,) + count_shape, -1, jnp.int32),
         )
 
-    def load(lane: _Lane, idx: Array, y: ConeState, mask: Array) -> _Lane:
+    def load(lane: Lane, idx: Array, y: ConeState, mask: Array) -> Lane:
         """Give the lanes in ``mask`` cell ``idx`` starting from ``y``; the others keep theirs."""
         return select_cells(mask, fresh(idx, y), lane)
 
-    def lane_step(lane: _Lane) -> _Lane:
+    def lane_step(lane: Lane) -> Lane:
         """One attempted adaptive step of one lane (vmapped), then the bookkeeping."""
         period = 1.0 / lane.loading.drive.frequency
         target = jnp.min(jnp.where(lane.nodes > lane.u + 1e-12, lane.nodes, 1.0))
@@ -383,31 +334,35 @@ def run_protocol(
 
         # window bookkeeping: amplitude from the Hermite interpolant of the accepted step
         if settle is None:
-            in_window = accept & (lane.cycle >= cycles - average)
+            in_window = accept & (lane.cycle >= lane.budget - lane.average)
         else:
             in_window = accept
-        (x0, v0), (x1, v1) = model.payload_motion(lane.y), model.payload_motion(y1)
-        lo, hi = hermite_extrema(x0, v0, x1, v1, h)
-        xmin = jnp.where(in_window, jnp.minimum(lane.xmin, lo), lane.xmin)
-        xmax = jnp.where(in_window, jnp.maximum(lane.xmax, hi), lane.xmax)
         if settle is None:
-            start = wrap & (cycle == cycles - average)
+            start = wrap & (cycle == lane.budget - lane.average)
             converged = jnp.zeros_like(wrap)
         else:  # the window is the cycle just finished; restart it unless the cell is done
             # or the last `average` cycles of the budget have begun
             converged = wrap & (cycle >= 2) & settled(res, rate, settle)
-            start = wrap & ~converged & (cycle <= cycles - average)
-        # charge pushed back into the source during the step (Phi is constant within a step),
-        # for the driven membranes only (an undriven one has Phi = 0: no energy either way)
-        back = model.returned_energy(t0, h, lane.y, y1, lane.loading, on)
-        back = jnp.where(in_window, lane.back + back, lane.back)
-        if settle is not None:
-            xmin = jnp.where(start, jnp.inf, xmin)
-            xmax = jnp.where(start, -jnp.inf, xmax)
-            back = jnp.where(start, 0.0, back)
-        window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), energies(y),
-                                        lane.window)
-        wcycle = jnp.where(start, cycle, lane.wcycle)
+            start = wrap & ~converged & (cycle <= lane.budget - lane.average)
+        if metrics:
+            (x0, v0), (x1, v1) = model.payload_motion(lane.y), model.payload_motion(y1)
+            lo, hi = hermite_extrema(x0, v0, x1, v1, h)
+            xmin = jnp.where(in_window, jnp.minimum(lane.xmin, lo), lane.xmin)
+            xmax = jnp.where(in_window, jnp.maximum(lane.xmax, hi), lane.xmax)
+            # charge pushed back into the source during the step (Phi is constant within a
+            # step), for the driven membranes only (an undriven one has Phi = 0)
+            back = model.returned_energy(t0, h, lane.y, y1, lane.loading, on)
+            back = jnp.where(in_window, lane.back + back, lane.back)
+            if settle is not None:
+                xmin = jnp.where(start, jnp.inf, xmin)
+                xmax = jnp.where(start, -jnp.inf, xmax)
+                back = jnp.where(start, 0.0, back)
+            window = jax.tree_util.tree_map(lambda a, b: jnp.where(start, a, b), energies(y),
+                                            lane.window)
+            wcycle = jnp.where(start, cycle, lane.wcycle)
+        else:
+            xmin, xmax, back, window, wcycle = (lane.xmin, lane.xmax, lane.back, lane.window,
+                                                lane.wcycle)
 
         margin = model.lockup_margin(y)
         lockup = lane.lockup | (active & ~(margin > 0))
@@ -415,7 +370,7 @@ def run_protocol(
         # step size collapsed: non-finite/unstable. The lane stops here; its state is set
         # to NaN once per round (in round_), not in every step (8 selects per step)
         blown = active & ~ok & (h < 1e-12 * period)
-        done = (lane.done | (cycle >= cycles) | lockup | blown | (steps >= control.max_steps)
+        done = (lane.done | (cycle >= lane.budget) | lockup | blown | (steps >= control.max_steps)
                 | converged)
         return eqx.tree_at(
             lambda s: (s.y, s.cycle, s.u, s.h, s.steps, s.window, s.wcycle, s.prev, s.res,
@@ -425,6 +380,7 @@ def run_protocol(
         )
 
     out = dict(
+        h=jnp.zeros(n_cells),
         P_out=jnp.zeros(n_cells), P_in=jnp.zeros(n_cells), P_in_signed=jnp.zeros(n_cells),
         efficiency=jnp.zeros(n_cells), amplitude=jnp.zeros(n_cells), v_rms=jnp.zeros(n_cells),
         status=jnp.zeros(n_cells, jnp.int32), steps=jnp.zeros(n_cells, jnp.int32),
@@ -433,11 +389,12 @@ def run_protocol(
             lambda a: jnp.zeros((n_cells,) + a.shape, jnp.float64), y0),
     )
 
-    def harvest(out, lane: _Lane, finished: Array):
+    def harvest(out, lane: Lane, finished: Array):
         """Write the finished lanes' results into the outputs (other lanes write nowhere)."""
-        metrics = jax.vmap(lambda ln: window_metrics(ln, cycles, settle, require_settled))(
+        metrics = jax.vmap(lambda ln: window_metrics(ln, ln.budget, settle, require_settled))(
             lane)
         metrics["final_state"] = widen_states(lane.y)
+        metrics["h"] = lane.h
         target = jnp.where(finished, lane.job, n_cells)  # index n_cells is dropped
         return jax.tree_util.tree_map(
             lambda o, m: o.at[target].set(m, mode="drop"), out, metrics)
@@ -491,7 +448,8 @@ def run_protocol(
         keep = jnp.argsort(lane.done, stable=True)[:smaller]  # running lanes (idle: done)
         carry = (jax.tree_util.tree_map(lambda a: a[keep], lane), out, next_job)
     _, out, _ = jax.lax.while_loop(busy, round_, carry)
-    return CycleMetrics(**out)
+    h = out.pop("h")
+    return CycleMetrics(**out) if metrics else (CycleMetrics(**out), h)
 
 
 def _all_finite_lanes(y: ConeState) -> Array:

@@ -33,7 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
-from .lanes import lane_pools, rest_states, run_protocol, select_cells
+from .lane_state import rest_states, select_cells
+from .lanes import lane_pools, run_protocol
 from .metrics import DYNAMICAL, CycleMetrics, periodicity_residual
 from .sharding import cell_sharded, on_accelerator, to_host
 from .step_control import StepControl

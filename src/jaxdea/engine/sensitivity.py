@@ -37,7 +37,8 @@ import numpy as np
 
 from ..models.cone import ConeState
 from .batch import driven_membranes
-from .lanes import rest_states, run_protocol
+from .lane_state import rest_states
+from .lanes import run_protocol
 from .periodic import (
     STABLE_MULTIPLIER,
     flatten_dynamical,

@@ -39,7 +39,7 @@ import numpy as np
 from ..models.cone import ConeActuator, ConeState, Loading
 from .batch import default_lanes, schedule, scheduled_batches, take_cells
 from .chord import CHORD_ITERATIONS, Chord, Iterates, chord_cells
-from .lanes import select_cells
+from .lane_state import select_cells
 from .metrics import CycleMetrics
 from .periodic import flatten_dynamical, periodic_cells, with_dynamical
 from .sharding import replicated, to_host
