@@ -33,7 +33,7 @@ import jax.numpy as jnp
 
 from ..models.cone import ConeActuator, Loading
 from .lane_state import rest_states, select_cells
-from .lanes import run_protocol
+from .lanes import lane_pools, run_protocol
 from .metrics import CycleMetrics
 from .step_control import StepControl
 
@@ -89,9 +89,13 @@ def run_paper(model: ConeActuator, loadings: Loading, *, cycles, average,
     # orbit lies ~4e-5 (scaled) away and takes the transient's decay to reach
     first_step = jnp.minimum(control.dt_max, 1.0 / loadings.drive.frequency / 200.0)
     run_b = ~failed if active is None else ~failed & jnp.asarray(active, bool)
+    # one cycle a cell (k where unsettled), the lowest frequencies queued first: no long
+    # tail, so without the narrowest pool (each pool is a compile of its own)
+    full = pools or lane_pools(int(min(n, lanes or 32)), strict=settle is None)
     second = run_protocol(model, loadings, cycles=window, average=window,
                           initial=select_cells(run_a, first.final_state, initial),
-                          initial_step=jnp.where(run_a, h, first_step), active=run_b, **common)
+                          initial_step=jnp.where(run_a, h, first_step), active=run_b,
+                          **{**common, "pools": tuple(full[:-1]) or tuple(full)})
     out = {}
     for k in CycleMetrics.__dataclass_fields__:
         a, b = getattr(first, k), getattr(second, k)
