@@ -52,14 +52,6 @@ def run_from_rest(actuator, loadings, successor, *, cycles, average, control, la
                         require_settled=False, driven=driven)
 
 
-def run_paper_from_rest(actuator, loadings, *, cycles, average, control, lanes, early_exit,
-                        driven=None):
-    """The papers' protocol on one device's independent cells from rest, in two passes
-    (:func:`~jaxdea.engine.paper.run_paper`)."""
-    return run_paper(actuator, loadings, cycles=cycles, average=average, control=control,
-                     lanes=lanes, settle=early_exit, driven=driven)
-
-
 def driven_membranes(loadings: Loading) -> tuple[int, ...]:
     """The membranes with a non-zero drive amplitude in some cell (concrete loadings)."""
     amp = np.asarray(loadings.drive.amplitude)
@@ -159,9 +151,9 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     if protocol == "paper" and initial is None:  # independent cells: schedule them
         lanes = lanes or default_lanes(local, devices)
         if len(devices) > 1:
-            run = lambda ld: cell_sharded(run_paper_from_rest, devices)(  # noqa: E731
+            run = lambda ld: cell_sharded(run_paper, devices)(  # noqa: E731
                 model.actuator, ld, cycles=int(cycles), average=int(average), control=control,
-                lanes=lanes, early_exit=early_exit, driven=driven)
+                lanes=lanes, settle=early_exit, driven=driven)
         else:
             run = lambda ld: _run_paper(  # noqa: E731
                 model.actuator, ld, cycles=jnp.asarray(cycles, jnp.int32),

@@ -23,6 +23,11 @@ def cycle_nodes(loading: Loading) -> Array:
     return jnp.sort(jnp.concatenate([e, jnp.ones(1)]))
 
 
+def first_step(dt_max, frequency: Array) -> Array:
+    """The step a cell starts with, s: a 200th of its period, at most ``dt_max``."""
+    return jnp.minimum(dt_max, 1.0 / frequency / 200.0)
+
+
 def select_cells(mask: Array, a, b):
     """Per cell (leading axis), ``a``'s leaves where ``mask`` is true, else ``b``'s."""
     return jax.tree_util.tree_map(

@@ -59,7 +59,14 @@ from jaxtyping import Array
 from ..models.cone import ConeActuator, ConeState, Loading
 from ..solver import ExponentialRK4, LawsonRK4, SemilinearTerm
 from . import extrapolate as _extrapolate
-from .lane_state import Lane, cycle_nodes, reset_accumulators, rest_states, select_cells
+from .lane_state import (
+    Lane,
+    cycle_nodes,
+    first_step,
+    reset_accumulators,
+    rest_states,
+    select_cells,
+)
 from .metrics import (
     CycleMetrics,
     all_finite,
@@ -121,6 +128,12 @@ def lane_pools(n_lanes: int, strict: bool = False) -> tuple[int, ...]:
     return (*wide, n, 8)
 
 
+def batch_pools(n_cells: int, lanes: int | None = None, strict: bool = False) -> tuple[int, ...]:
+    """The default pools of a batch of ``n_cells`` cells (per device) with ``lanes`` lanes
+    (default 32): :func:`lane_pools` of the narrower of the two."""
+    return lane_pools(int(min(n_cells, lanes or 32)), strict=strict)
+
+
 def run_protocol(
     model: ConeActuator,
     loadings: Loading,
@@ -140,7 +153,7 @@ def run_protocol(
     driven: tuple[int, ...] | None = None,
     frozen_steps: bool = False,
     metrics: bool = True,
-) -> CycleMetrics:
+) -> CycleMetrics | tuple[CycleMetrics, Array]:
     """Run ``cycles`` periods from rest for every cell of ``loadings`` (leading axis = cells)
     and average the last ``average`` periods. Jittable; ``model`` is shared by all cells.
 
@@ -189,7 +202,7 @@ def run_protocol(
     budget = jnp.broadcast_to(jnp.asarray(cycles, jnp.int32), (n_cells,))
     average_of = jnp.broadcast_to(jnp.asarray(average, jnp.int32), (n_cells,))
     if pools is None:
-        pools = lane_pools(int(min(n_cells, lanes or 32)), strict=settle is None)
+        pools = batch_pools(n_cells, lanes, strict=settle is None)
     if not pools or any(p < 1 for p in pools) or list(pools) != sorted(pools, reverse=True):
         raise ValueError(f"pools must be decreasing positive lane counts, got {pools!r}")
     pools = tuple(dict.fromkeys(max(MIN_LANES, int(min(n_cells, p))) for p in pools))
@@ -265,7 +278,7 @@ def run_protocol(
             budget=budget[safe],
             average=average_of[safe],
             u=jnp.zeros(n),
-            h=(jnp.minimum(control.dt_max, period / 200.0) if initial_step is None
+            h=(first_step(control.dt_max, loading.drive.frequency) if initial_step is None
                else jnp.asarray(initial_step, period.dtype)[safe]),
             steps=jnp.zeros(n, jnp.int32),
             window=energies(y),
@@ -380,7 +393,7 @@ def run_protocol(
         )
 
     out = dict(
-        h=jnp.zeros(n_cells),
+        **({} if metrics else {"h": jnp.zeros(n_cells)}),  # the transient's next step
         P_out=jnp.zeros(n_cells), P_in=jnp.zeros(n_cells), P_in_signed=jnp.zeros(n_cells),
         efficiency=jnp.zeros(n_cells), amplitude=jnp.zeros(n_cells), v_rms=jnp.zeros(n_cells),
         status=jnp.zeros(n_cells, jnp.int32), steps=jnp.zeros(n_cells, jnp.int32),
@@ -391,13 +404,14 @@ def run_protocol(
 
     def harvest(out, lane: Lane, finished: Array):
         """Write the finished lanes' results into the outputs (other lanes write nowhere)."""
-        metrics = jax.vmap(lambda ln: window_metrics(ln, ln.budget, settle, require_settled))(
+        values = jax.vmap(lambda ln: window_metrics(ln, ln.budget, settle, require_settled))(
             lane)
-        metrics["final_state"] = widen_states(lane.y)
-        metrics["h"] = lane.h
+        values["final_state"] = widen_states(lane.y)
+        if not metrics:
+            values["h"] = lane.h
         target = jnp.where(finished, lane.job, n_cells)  # index n_cells is dropped
         return jax.tree_util.tree_map(
-            lambda o, m: o.at[target].set(m, mode="drop"), out, metrics)
+            lambda o, m: o.at[target].set(m, mode="drop"), out, values)
 
     def round_(carry):
         lane, out, next_job = carry
@@ -448,8 +462,10 @@ def run_protocol(
         keep = jnp.argsort(lane.done, stable=True)[:smaller]  # running lanes (idle: done)
         carry = (jax.tree_util.tree_map(lambda a: a[keep], lane), out, next_job)
     _, out, _ = jax.lax.while_loop(busy, round_, carry)
+    if metrics:
+        return CycleMetrics(**out)
     h = out.pop("h")
-    return CycleMetrics(**out) if metrics else (CycleMetrics(**out), h)
+    return CycleMetrics(**out), h
 
 
 def _all_finite_lanes(y: ConeState) -> Array:

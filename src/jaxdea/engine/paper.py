@@ -32,8 +32,8 @@ import jax
 import jax.numpy as jnp
 
 from ..models.cone import ConeActuator, Loading
-from .lane_state import rest_states, select_cells
-from .lanes import lane_pools, run_protocol
+from .lane_state import first_step, rest_states, select_cells
+from .lanes import batch_pools, run_protocol
 from .metrics import CycleMetrics
 from .step_control import StepControl
 
@@ -87,14 +87,14 @@ def run_paper(model: ConeActuator, loadings: Loading, *, cycles, average,
     # the transient's next step carries on (the cycle it ends is then the one it would have
     # run, bit for bit); a fresh first step at the edge is another discretisation, whose
     # orbit lies ~4e-5 (scaled) away and takes the transient's decay to reach
-    first_step = jnp.minimum(control.dt_max, 1.0 / loadings.drive.frequency / 200.0)
+    step = jnp.where(run_a, h, first_step(control.dt_max, loadings.drive.frequency))
     run_b = ~failed if active is None else ~failed & jnp.asarray(active, bool)
     # one cycle a cell (k where unsettled), the lowest frequencies queued first: no long
     # tail, so without the narrowest pool (each pool is a compile of its own)
-    full = pools or lane_pools(int(min(n, lanes or 32)), strict=settle is None)
+    full = pools or batch_pools(n, lanes, strict=settle is None)
     second = run_protocol(model, loadings, cycles=window, average=window,
                           initial=select_cells(run_a, first.final_state, initial),
-                          initial_step=jnp.where(run_a, h, first_step), active=run_b,
+                          initial_step=step, active=run_b,
                           **{**common, "pools": tuple(full[:-1]) or tuple(full)})
     out = {}
     for k in CycleMetrics.__dataclass_fields__:

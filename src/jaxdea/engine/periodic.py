@@ -34,7 +34,7 @@ import numpy as np
 
 from ..models.cone import ConeActuator, ConeState, Loading
 from .lane_state import rest_states, select_cells
-from .lanes import lane_pools, run_protocol
+from .lanes import batch_pools, run_protocol
 from .metrics import DYNAMICAL, CycleMetrics, periodicity_residual
 from .sharding import cell_sharded, on_accelerator, to_host
 from .step_control import StepControl
@@ -88,7 +88,7 @@ def settle_pools(n_local: int, lanes: int | None) -> tuple[int, ...]:
     lanes per device (default 32): :func:`~jaxdea.engine.lanes.lane_pools` with an early
     exit. A chord iteration's period runs through the same pools, so that one program serves
     both (measured: ``bench/NOTES.md``)."""
-    return lane_pools(int(min(n_local, lanes or 32)))
+    return batch_pools(n_local, lanes)
 
 
 def settle_budget(actuator, cycles: int, tol: float):
