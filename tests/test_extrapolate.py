@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.engine import extrapolate
+from jaxdea.engine import extrapolate, step_control
 from jaxdea.engine.lanes import run_protocol
 from jaxdea.studies.loadings import make_loadings
 
@@ -186,3 +186,35 @@ def test_a_spurious_mode_does_not_jump(models):
     for k, tol in (("P_out", 1e-5), ("amplitude", 1e-4)):
         err = np.abs(jumped[k].values / strict[k].values - 1)
         assert err.max() < tol, (k, err)
+
+
+def test_auto_extrapolates_big_jobs_only(models, monkeypatch):
+    """``StepControl(extrapolate="auto")``, the default: the tolerance
+    :data:`~jaxdea.engine.step_control.EXTRAPOLATE` for a job of at least
+    :data:`~jaxdea.engine.step_control.EXTRAPOLATE_FROM` cells (whose compile the jumps
+    repay), off for a smaller one and in single precision; a tolerance or None stays; any
+    other word is one clear error. A sweep records what it ran with, and its answers with
+    and without the jumps agree to the early exit's accuracy."""
+    auto = jaxdea.StepControl()
+    assert auto.extrapolate == step_control.AUTO
+    resolve = step_control.resolve_extrapolate
+    big = step_control.EXTRAPOLATE_FROM
+    assert resolve(auto, big).extrapolate == step_control.EXTRAPOLATE
+    assert resolve(auto, big - 1).extrapolate is None
+    assert resolve(auto._replace(precision="single"), 10 * big).extrapolate is None
+    for x in (None, 1e-6):
+        assert resolve(auto._replace(extrapolate=x), 10 * big).extrapolate == x
+    model = models["scdea_ls"]
+    with pytest.raises(jaxdea.SweepError, match=r"extrapolate = 'yes' must be a tolerance in "
+                                                r"\(0, 1\), None \(off\) or 'auto'"):
+        jaxdea.sweep(model, mass=2e-3, damping=0.1, freq=[60.0],
+                     control=jaxdea.StepControl(extrapolate="yes"))
+    kw = dict(mass=2e-3, damping=0.1, freq=[60.0, 140.0], cycles=60, average=5)
+    small = jaxdea.sweep(model, **kw)
+    monkeypatch.setattr(step_control, "EXTRAPOLATE_FROM", 2)
+    large = jaxdea.sweep(model, **kw)
+    assert small.attrs.get("extrapolate") is None  # (a None attribute is not stored)
+    assert large.attrs["extrapolate"] == step_control.EXTRAPOLATE
+    assert large.steps.values.sum() < small.steps.values.sum()  # it jumped
+    for k in ("P_out", "P_in", "amplitude"):
+        np.testing.assert_allclose(large[k].values, small[k].values, rtol=1e-5, err_msg=k)

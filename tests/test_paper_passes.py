@@ -125,3 +125,37 @@ def test_a_cell_that_fails_in_the_transient_keeps_its_status_with_nan_metrics(mo
         v = np.asarray(getattr(two, k))
         assert np.isnan(v[[1, 2]]).all() and np.isfinite(v[[0, 3]]).all(), k
         np.testing.assert_allclose(v[[0, 3]], np.asarray(getattr(one, k))[[0, 3]], rtol=1e-6)
+
+
+def test_jumps_in_the_transient_keep_the_early_exits_answers(model, loads):
+    """``StepControl(extrapolate=1e-8)`` (what ``"auto"`` picks for a big map): a cell whose
+    transient fits its recurrence jumps to :data:`~jaxdea.engine.extrapolate.LOOKAHEAD`
+    cycles short of the transient pass's end, with the step size of its last cycle end, and
+    integrates on from there as any cell: its early exit finds it periodic, or (as these
+    cells, whose transient decays by a few per cent a cycle) it runs the transient pass's
+    end and the last 5 cycles. 8 lightly damped cells at 60-200 Hz give the answers of the
+    run without jumps (measured on 1024 cells at 1-200 Hz: P_out within 1.4e-6, the
+    amplitude 7.2e-6; on the 250 000 cells of the map's slice, P_out 1.9e-5) in fewer steps.
+    Without an early exit nothing jumps."""
+    rng = np.random.default_rng(2)
+    n = 8
+    cells = make_loadings(model, 10 ** rng.uniform(-3, -2, n), 10 ** rng.uniform(-1, -0.3, n),
+                          rng.uniform(60.0, 200.0, n))
+    kw = dict(cycles=100, average=5, pools=(n,), settle=EARLY_EXIT)
+    plain = _paper(model.actuator, cells, **kw)
+    jumped = _paper(model.actuator, cells, control=jaxdea.StepControl(extrapolate=1e-8), **kw)
+    np.testing.assert_array_equal(np.asarray(jumped.status), np.asarray(plain.status))
+    np.testing.assert_array_equal(np.asarray(plain.status), 0)
+    fewer = np.asarray(jumped.steps) < 0.8 * np.asarray(plain.steps)
+    assert fewer.sum() >= n // 2, (np.asarray(jumped.steps), np.asarray(plain.steps))
+    # a jumped cell's cycles count from its landing (the transient pass's 95 cycles land
+    # at 89): at least one cycle after it
+    ran = np.asarray(jumped.cycles_run)[fewer]
+    assert (ran >= 90).all(), ran
+    for k, tol in (("P_out", 1e-5), ("P_in", 1e-5), ("v_rms", 1e-5), ("amplitude", 1e-4)):
+        np.testing.assert_allclose(np.asarray(getattr(jumped, k)),
+                                   np.asarray(getattr(plain, k)), rtol=tol, err_msg=k)
+    strict = dict(cycles=100, average=5, pools=(4,))
+    a = _paper(model.actuator, loads, **strict)
+    b = _paper(model.actuator, loads, control=jaxdea.StepControl(extrapolate=1e-8), **strict)
+    np.testing.assert_array_equal(np.asarray(b.steps), np.asarray(a.steps))

@@ -30,7 +30,7 @@ from .protocols import (
     check_rest_start,
 )
 from .sharding import cell_sharded, on_accelerator
-from .step_control import StepControl, check_control
+from .step_control import StepControl, check_control, resolve_extrapolate
 
 _run = eqx.filter_jit(run_protocol)
 
@@ -133,6 +133,7 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     early_exit = None if early_exit is None else float(early_exit)
     check_control(control)
     check_precision(control, protocol, early_exit)
+    control = resolve_extrapolate(control, loadings.drive.frequency.shape[0])
     if not isinstance(model, Model):
         raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
     check_choice("protocol", protocol, PROTOCOLS)

@@ -75,6 +75,7 @@ class Lane(eqx.Module):
     expect: Array  # the difference the fit predicted after the landing (empty when off)
     guess: Array  # the lane's last prediction of its jump's landing, flattened (empty: off)
     guessed: Array  # the cycle that prediction was made at, else -1 (empty when off)
+    hwrap: Array  # the step proposed at the last cycle end, s: a jump's (empty when off)
 
 
 def rest_states(model, loadings: Loading) -> ConeState:

@@ -229,10 +229,13 @@ def run_protocol(
         y0 = narrow_states(y0)
         initial = None if initial is None else narrow_states(initial)
     term = SemilinearTerm(model.vector_field, model.linearisation)
-    # the transient's extrapolation (StepControl.extrapolate): runs of the papers' protocol
-    # only (not the periodic protocol's settling, nor one-period shots)
-    jump = control.extrapolate if (settle is None or not require_settled) else None
-    if isinstance(cycles, int) and cycles < _extrapolate.HISTORY + 3:
+    # the transient's extrapolation (StepControl.extrapolate, a tolerance; "auto" is the
+    # studies' to resolve, off here): runs with an early exit of the papers' and the
+    # continuation protocol only (not the periodic protocol's settling, nor one-period shots)
+    jump = control.extrapolate if (settle is not None and not require_settled
+                                   and not isinstance(control.extrapolate, str)) else None
+    if isinstance(cycles, int) and isinstance(average, int) and \
+            _extrapolate.landing_cycle(cycles, average) < _extrapolate.HISTORY + 1:
         jump = None
     if jump is not None and (jnp.ndim(cycles) or jnp.ndim(average)):
         raise ValueError("StepControl.extrapolate needs one cycles/average for all cells")
@@ -302,6 +305,7 @@ def run_protocol(
             expect=jnp.zeros((n,) + count_shape),
             guess=jnp.zeros((n,) + hist_shape[1:]),
             guessed=jnp.full((n,) + count_shape, -1, jnp.int32),
+            hwrap=jnp.zeros((n,) + count_shape),
         )
 
     def load(lane: Lane, idx: Array, y: ConeState, mask: Array) -> Lane:
@@ -385,6 +389,8 @@ def run_protocol(
         blown = active & ~ok & (h < 1e-12 * period)
         done = (lane.done | (cycle >= lane.budget) | lockup | blown | (steps >= control.max_steps)
                 | converged)
+        if jump is not None:  # the step a jump's landing goes on with (a cycle's first)
+            lane = eqx.tree_at(lambda s: s.hwrap, lane, jnp.where(wrap, h_next, lane.hwrap))
         return eqx.tree_at(
             lambda s: (s.y, s.cycle, s.u, s.h, s.steps, s.window, s.wcycle, s.prev, s.res,
                        s.ratio, s.rate, s.back, s.xmin, s.xmax, s.lockup, s.blown, s.done),

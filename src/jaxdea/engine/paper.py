@@ -19,8 +19,12 @@ cycle after the one that met the early exit (the same to the early exit's tolera
 cell that never settles runs the same ``cycles`` cycles and averages the same last
 ``average``. A cell that fails in the transient (lock-up, a non-finite state, the step
 budget) keeps that status, with NaN metrics (there is no window to average). Step budgets
-(``StepControl.max_steps``) count per pass. With ``StepControl(extrapolate=...)`` the
-protocol runs in one pass (the extrapolation reads the cycles it jumps over).
+(``StepControl.max_steps``) count per pass. With ``StepControl(extrapolate=...)`` (a
+tolerance: the studies resolve ``"auto"``) a cell of the transient's pass may jump ahead
+(:mod:`jaxdea.engine.extrapolate`): to :data:`~jaxdea.engine.extrapolate.LOOKAHEAD` cycles
+before the end of that pass, with the step size of its last cycle end, where its early
+exit then finds it periodic; the window's pass never jumps. A jumped cell's
+``cycles_run`` counts the cycles jumped over.
 
 Measured (``docs/performance.md``): the transient's lane-step 0.70x the full one's (1024
 DCDEA-LS cells at 20-200 Hz, one device, the same steps bit for bit).
@@ -67,9 +71,6 @@ def run_paper(model: ConeActuator, loadings: Loading, *, cycles, average,
     """
     common = dict(control=control, lanes=lanes, settle=settle, require_settled=False,
                   pools=pools, driven=driven)
-    if control.extrapolate is not None:
-        return run_protocol(model, loadings, cycles=cycles, average=average, initial=initial,
-                            active=active, **common)
     n = jax.tree_util.tree_leaves(loadings)[0].shape[0]
     if initial is None:  # rest, explicit: the window's pass starts from it where the
         initial = rest_states(model, loadings)  # transient's does not run
@@ -95,7 +96,8 @@ def run_paper(model: ConeActuator, loadings: Loading, *, cycles, average,
     second = run_protocol(model, loadings, cycles=window, average=window,
                           initial=select_cells(run_a, first.final_state, initial),
                           initial_step=step, active=run_b,
-                          **{**common, "pools": tuple(full[:-1]) or tuple(full)})
+                          **{**common, "pools": tuple(full[:-1]) or tuple(full),
+                             "control": control._replace(extrapolate=None)})
     out = {}
     for k in CycleMetrics.__dataclass_fields__:
         a, b = getattr(first, k), getattr(second, k)

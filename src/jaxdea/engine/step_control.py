@@ -36,12 +36,15 @@ class StepControl(NamedTuple):
     (:class:`~jaxdea.solver.ExponentialRK4`: ~2x more accurate against LSODA at the same
     ``rtol``, 5-15 % slower on the power-map bench; ``rtol=2e-6`` with it is as accurate as
     Lawson at 1e-6 on viscous payloads in 1.4x fewer steps, not on a Coulomb drag:
-    ``bench/NOTES.md``); ``extrapolate``: ``None`` (the default) or a tolerance in (0, 1):
-    in the papers' protocol a cell whose slow transient fits a low-order linear recurrence
-    of its cycle-start states to this estimated error (scaled units) jumps to the start of
-    its averaged cycles instead of integrating the cycles in between
-    (:mod:`jaxdea.engine.extrapolate`; the same answer to the integration's accuracy in
-    fewer steps, ``bench/NOTES.md``).
+    ``bench/NOTES.md``); ``extrapolate``: a tolerance in (0, 1), ``None`` (off) or
+    ``"auto"`` (the default: :data:`EXTRAPOLATE` for a map or sweep of at least
+    :data:`EXTRAPOLATE_FROM` cells, else off; :func:`resolve_extrapolate`): in the papers'
+    and the continuation protocol with an early exit, a cell whose slow transient fits a
+    low-order linear recurrence of its cycle-start states to this estimated error (scaled
+    units) jumps a few cycles short of its averaged ones and integrates on from there, so
+    that the early exit finds it periodic there instead of after the cycles in between
+    (:mod:`jaxdea.engine.extrapolate`; the same answer to ~1e-6 in fewer steps,
+    ``bench/NOTES.md``). Runs without an early exit never jump.
     """
 
     rtol: float = 1e-6
@@ -49,7 +52,43 @@ class StepControl(NamedTuple):
     max_steps: int = 5_000_000
     precision: str = "double"
     solver: str = "lawson"
-    extrapolate: float | None = None
+    extrapolate: float | str | None = "auto"
+
+
+#: ``StepControl(extrapolate="auto")``: the tolerance of a job of at least
+#: :data:`EXTRAPOLATE_FROM` cells. Measured on 1024 DCDEA-LS cells at 1-200 Hz (papers'
+#: protocol, early exit): 1e-8 0.69x the steps, 0.78x the time, P_out within 1.4e-6 of the
+#: run without jumps (amplitude 7.2e-6); 1e-7 0.63x, 0.74x, 1.2e-5 (1.8e-5).
+EXTRAPOLATE = 1e-8
+#: ``"auto"`` extrapolates from this many cells on: its compiled code costs ~1.6 s per lane
+#: pool (3.3 s for a batch's two), which the jumps repay (~0.2 ms per cell of the papers'
+#: protocol on two CPU devices) from ~18 000 cells; smaller jobs (the tests, the README's
+#: main job) compile without it.
+EXTRAPOLATE_FROM = 20_000
+#: The default of :attr:`StepControl.extrapolate`.
+AUTO = "auto"
+
+
+def resolve_extrapolate(control: StepControl, n_cells: int) -> StepControl:
+    """``control`` with ``extrapolate="auto"`` replaced by its value for a job of
+    ``n_cells`` cells: :data:`EXTRAPOLATE` from :data:`EXTRAPOLATE_FROM` cells on, else
+    ``None`` (also in single precision, whose cycle-to-cycle noise, ~1e-5, no fit gets
+    under it); a tolerance or ``None`` stays as it is.
+
+    **Arguments:**
+
+    - `control`: the step policy.
+    - `n_cells`: the job's cells (a whole map's or sweep's, not a chunk's: every chunk of a
+      job runs the same way).
+
+    **Returns:**
+
+    The step policy with ``extrapolate`` a tolerance or ``None``.
+    """
+    if isinstance(control.extrapolate, str) and control.extrapolate == AUTO:
+        on = n_cells >= EXTRAPOLATE_FROM and control.precision == "double"
+        return control._replace(extrapolate=EXTRAPOLATE if on else None)
+    return control
 
 
 #: The lanes' precisions (:class:`StepControl`; what single precision may be combined with:
@@ -83,7 +122,11 @@ def check_control(control) -> None:
         raise SweepError(f"precision = {control.precision!r} must be one of "
                          f"{', '.join(map(repr, PRECISIONS))}")
     check_choice("solver", control.solver, SOLVERS)
-    if control.extrapolate is not None:
+    if isinstance(control.extrapolate, str):
+        if control.extrapolate != AUTO:
+            raise SweepError(f"extrapolate = {control.extrapolate!r} must be a tolerance in "
+                             f"(0, 1), None (off) or {AUTO!r}")
+    elif control.extrapolate is not None:
         check_unit_interval("extrapolate", control.extrapolate)
 
 
@@ -91,6 +134,8 @@ def control_attrs(control: StepControl, protocol: str) -> dict:
     """The step policy as a map's or sweep's metadata: ``rtol``, ``precision``, ``solver``
     and ``extrapolate`` (``None`` where ``protocol`` is ``"periodic"``, which ignores it)."""
     extrapolate = control.extrapolate if protocol != "periodic" else None
+    if isinstance(extrapolate, str):  # "auto" not resolved: the engine runs it as off
+        extrapolate = None
     return dict(rtol=float(control.rtol), precision=control.precision, solver=control.solver,
                 extrapolate=None if extrapolate is None else float(extrapolate))
 

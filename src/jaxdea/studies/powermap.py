@@ -51,7 +51,12 @@ from ..engine.metrics import STATUS
 from ..engine.precision import check_precision
 from ..engine.protocols import STARTS, Protocol, as_keywords
 from ..engine.sharding import on_accelerator
-from ..engine.step_control import StepControl, check_control, control_attrs
+from ..engine.step_control import (
+    StepControl,
+    check_control,
+    control_attrs,
+    resolve_extrapolate,
+)
 from ..models.cone import Model
 from ..payloads import parameters
 from .distributed import (
@@ -336,6 +341,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
     # ---- chunking -----------------------------------------------------------------------
     devices = tuple(jax.devices()) if client is None else ()  # cluster: one per worker
     n_cells = math.prod(shape)
+    control = resolve_extrapolate(control, n_cells)  # the whole map's, not a chunk's
     successor = None
     n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
     unit, target, chain = chunk_target(protocol, start, shape, devices, chunk_cells)

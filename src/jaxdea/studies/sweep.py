@@ -15,7 +15,12 @@ from ..engine.batch import DIRECTIONS, EARLY_EXIT, PROTOCOLS, chain_successors, 
 from ..engine.metrics import STATUS, STEADY_RESIDUAL, CycleMetrics, steady_cells
 from ..engine.precision import check_precision
 from ..engine.protocols import Protocol, as_keywords, check_rest_start
-from ..engine.step_control import StepControl, check_control, control_attrs
+from ..engine.step_control import (
+    StepControl,
+    check_control,
+    control_attrs,
+    resolve_extrapolate,
+)
 from ..models.cone import Model
 from ..payloads import PARAMETER_UNITS
 from .loadings import check_payload, make_loadings, payload_parameters, warn_breakdown
@@ -114,6 +119,7 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
     loadings = make_loadings(model, mass_arr[0], damping, freq, drive, phase, payload)
     warn_breakdown(model)
     successor = chain_successors(freq.size, direction=direction)
+    control = resolve_extrapolate(control, freq.size)
     devices = tuple(jax.devices())
     res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
                     lanes=lanes, protocol=protocol, successor=successor, tol=tol,
