@@ -342,7 +342,8 @@ def verify(lane, cycles, average, tol):
         & ~(moved <= lane.expect + VERIFY * tol)
     kept = eqx.tree_at(lambda s: s.jumped_from, lane, jnp.where(checked, -1, lane.jumped_from))
     y = jax.vmap(unflatten)(lane.origin, lane.y)
-    undone = eqx.tree_at(lambda s: s.done,
+    # back at a cycle start, with a cycle end's step (as a landing: see jump)
+    undone = eqx.tree_at(lambda s: (s.done, s.h),
                          _restart(kept, y, jnp.maximum(lane.jumped_from, 0)),
-                         jnp.zeros(n, bool))
+                         (jnp.zeros(n, bool), lane.hwrap))
     return back, undone, kept
