@@ -194,18 +194,19 @@ def test_auto_extrapolates_big_jobs_only(models, monkeypatch):
     """``StepControl(extrapolate="auto")``, the default: the tolerance
     :data:`~jaxdea.engine.step_control.EXTRAPOLATE` for a job of at least
     :data:`~jaxdea.engine.step_control.EXTRAPOLATE_FROM` cells (whose compile the jumps
-    repay), off for a smaller one and in single precision; a tolerance or None stays; any
-    other word is one clear error. A sweep records what it ran with, and its answers with
-    and without the jumps agree to the early exit's accuracy."""
+    repay), off for a smaller one, without an early exit and in single precision; a
+    tolerance or None stays; any other word is one clear error. A sweep records what it ran
+    with, and its answers with and without the jumps agree to the early exit's accuracy."""
     auto = jaxdea.StepControl()
     assert auto.extrapolate == step_control.AUTO
     resolve = step_control.resolve_extrapolate
     big = step_control.EXTRAPOLATE_FROM
-    assert resolve(auto, big).extrapolate == step_control.EXTRAPOLATE
-    assert resolve(auto, big - 1).extrapolate is None
-    assert resolve(auto._replace(precision="single"), 10 * big).extrapolate is None
+    assert resolve(auto, big, 1e-8).extrapolate == step_control.EXTRAPOLATE
+    assert resolve(auto, big - 1, 1e-8).extrapolate is None
+    assert resolve(auto, big, None).extrapolate is None  # nothing would jump
+    assert resolve(auto._replace(precision="single"), 10 * big, 1e-5).extrapolate is None
     for x in (None, 1e-6):
-        assert resolve(auto._replace(extrapolate=x), 10 * big).extrapolate == x
+        assert resolve(auto._replace(extrapolate=x), 10 * big, 1e-8).extrapolate == x
     model = models["scdea_ls"]
     with pytest.raises(jaxdea.SweepError, match=r"extrapolate = 'yes' must be a tolerance in "
                                                 r"\(0, 1\), None \(off\) or 'auto'"):

@@ -133,7 +133,7 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     early_exit = None if early_exit is None else float(early_exit)
     check_control(control)
     check_precision(control, protocol, early_exit)
-    control = resolve_extrapolate(control, loadings.drive.frequency.shape[0])
+    control = resolve_extrapolate(control, loadings.drive.frequency.shape[0], early_exit)
     if not isinstance(model, Model):
         raise ConfigError("model must come from jaxdea.load_config (a jaxdea.Model)")
     check_choice("protocol", protocol, PROTOCOLS)

@@ -38,7 +38,8 @@ class StepControl(NamedTuple):
     Lawson at 1e-6 on viscous payloads in 1.4x fewer steps, not on a Coulomb drag:
     ``bench/NOTES.md``); ``extrapolate``: a tolerance in (0, 1), ``None`` (off) or
     ``"auto"`` (the default: :data:`EXTRAPOLATE` for a map or sweep of at least
-    :data:`EXTRAPOLATE_FROM` cells, else off; :func:`resolve_extrapolate`): in the papers'
+    :data:`EXTRAPOLATE_FROM` cells with an early exit, else off;
+    :func:`resolve_extrapolate`): in the papers'
     and the continuation protocol with an early exit, a cell whose slow transient fits a
     low-order linear recurrence of its cycle-start states to this estimated error (scaled
     units) jumps a few cycles short of its averaged ones and integrates on from there, so
@@ -69,24 +70,28 @@ EXTRAPOLATE_FROM = 20_000
 AUTO = "auto"
 
 
-def resolve_extrapolate(control: StepControl, n_cells: int) -> StepControl:
+def resolve_extrapolate(control: StepControl, n_cells: int,
+                        early_exit: float | None) -> StepControl:
     """``control`` with ``extrapolate="auto"`` replaced by its value for a job of
     ``n_cells`` cells: :data:`EXTRAPOLATE` from :data:`EXTRAPOLATE_FROM` cells on, else
-    ``None`` (also in single precision, whose cycle-to-cycle noise, ~1e-5, no fit gets
-    under it); a tolerance or ``None`` stays as it is.
+    ``None``; ``None`` too without an early exit (nothing jumps there) and in single
+    precision (whose cycle-to-cycle noise, ~1e-5, no fit gets under). A tolerance or
+    ``None`` stays as it is.
 
     **Arguments:**
 
     - `control`: the step policy.
     - `n_cells`: the job's cells (a whole map's or sweep's, not a chunk's: every chunk of a
       job runs the same way).
+    - `early_exit`: the job's early exit (``None``: every cell runs all its cycles).
 
     **Returns:**
 
     The step policy with ``extrapolate`` a tolerance or ``None``.
     """
     if isinstance(control.extrapolate, str) and control.extrapolate == AUTO:
-        on = n_cells >= EXTRAPOLATE_FROM and control.precision == "double"
+        on = (n_cells >= EXTRAPOLATE_FROM and control.precision == "double"
+              and early_exit is not None)
         return control._replace(extrapolate=EXTRAPOLATE if on else None)
     return control
 

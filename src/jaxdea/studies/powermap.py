@@ -341,7 +341,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
     # ---- chunking -----------------------------------------------------------------------
     devices = tuple(jax.devices()) if client is None else ()  # cluster: one per worker
     n_cells = math.prod(shape)
-    control = resolve_extrapolate(control, n_cells)  # the whole map's, not a chunk's
+    control = resolve_extrapolate(control, n_cells, early_exit)  # the map's, not a chunk's
     successor = None
     n_f, n_rest = shape[2], (shape[3] if len(shape) == 4 else 1)
     unit, target, chain = chunk_target(protocol, start, shape, devices, chunk_cells)

@@ -119,7 +119,7 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
     loadings = make_loadings(model, mass_arr[0], damping, freq, drive, phase, payload)
     warn_breakdown(model)
     successor = chain_successors(freq.size, direction=direction)
-    control = resolve_extrapolate(control, freq.size)
+    control = resolve_extrapolate(control, freq.size, early_exit)
     devices = tuple(jax.devices())
     res = run_cells(model, loadings, cycles=cycles, average=average, control=control,
                     lanes=lanes, protocol=protocol, successor=successor, tol=tol,
