@@ -338,3 +338,33 @@ def test_de_population_on_the_cluster_equals_the_local_fit(client):
     assert there.params["actuator.membrane.dielectric.tau"] == pytest.approx(
         here.params["actuator.membrane.dielectric.tau"], rel=1e-12)
     assert there.loss == pytest.approx(here.loss, rel=1e-9)
+
+
+def test_a_cluster_without_workers_is_waited_for_then_refused():
+    """``check_client`` waits for a first worker where the scheduler lists none at the moment
+    (a nanny restarting one on a busy machine: once, right after an interrupted map, the
+    next map on this module's cluster failed at once), counts again, and with none after the
+    wait refuses in one line, before any compute."""
+    from jaxdea.studies.distributed import check_client
+
+    class Scheduler(distributed.Client):  # the two calls check_client makes, no connection
+        def __init__(self, later: int):
+            self.later, self.waited = later, None
+
+        def scheduler_info(self, n_workers=-1):
+            n = 0 if self.waited is None else self.later
+            return {"workers": {f"w{i}": {} for i in range(n)}}
+
+        def wait_for_workers(self, n_workers, timeout=None):
+            self.waited = timeout
+            if self.later < n_workers:
+                raise TimeoutError
+
+        def __del__(self):
+            pass
+
+    back = Scheduler(2)
+    assert check_client(back, wait=5.0) == 2 and back.waited == 5.0
+    with pytest.raises(jaxdea.SweepError,
+                       match=r"^the Dask cluster has no worker \(waited 5 s\): start workers"):
+        check_client(Scheduler(0), wait=5.0)

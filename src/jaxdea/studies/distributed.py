@@ -144,9 +144,34 @@ def compute_part(job: ChunkJob, i: int) -> dict[str, Any]:
     return receipt
 
 
-def check_client(client) -> int:
+#: Seconds :func:`check_client` waits for a worker when the cluster has none at the moment
+#: (a nanny restarting a worker, a busy machine): once, on a 2-core CI machine running two
+#: test processes and a 2-worker cluster, the scheduler listed none right after an
+#: interrupted map, and the next map failed at once.
+WORKER_WAIT = 30.0
+
+
+def _workers(client) -> int:
+    """The workers the scheduler lists now."""
+    try:
+        return len(client.scheduler_info(n_workers=-1)["workers"])
+    except TypeError:  # older distributed: no n_workers argument
+        return len(client.scheduler_info()["workers"])
+
+
+def check_client(client, wait: float = WORKER_WAIT) -> int:
     """The number of workers of ``client`` (a ``dask.distributed.Client``); SweepError for
-    anything else, or a client with no worker, before any compute."""
+    anything else, or a client with no worker within ``wait`` seconds, before any compute.
+
+    **Arguments:**
+
+    - `client`: the Dask client.
+    - `wait`: seconds to wait for a first worker where the cluster has none now.
+
+    **Returns:**
+
+    The number of workers.
+    """
     try:
         from distributed import Client
     except ImportError as exc:  # pragma: no cover - a declared dependency
@@ -156,13 +181,17 @@ def check_client(client) -> int:
         raise SweepError(f"client must be a dask.distributed.Client, got "
                          f"{type(client).__name__}")
     try:
-        n = len(client.scheduler_info(n_workers=-1)["workers"])
-    except TypeError:  # older distributed: no n_workers argument
-        n = len(client.scheduler_info()["workers"])
+        n = _workers(client)
+        if n < 1 and wait > 0:
+            try:
+                client.wait_for_workers(1, timeout=wait)
+            except TimeoutError:
+                pass
+            n = _workers(client)
     except OSError as exc:
         raise SweepError(f"the Dask client cannot reach its scheduler: {exc}") from None
     if n < 1:
-        raise SweepError("the Dask cluster has no worker: start workers (or wait for them) "
+        raise SweepError(f"the Dask cluster has no worker (waited {wait:g} s): start workers "
                          "before running a map on it")
     return n
 
