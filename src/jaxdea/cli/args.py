@@ -10,7 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdea.engine.step_control import EXTRAPOLATE, EXTRAPOLATE_FROM, SOLVERS, StepControl
+from jaxdea.engine.step_control import (
+    AUTO,
+    EXTRAPOLATE,
+    EXTRAPOLATE_FROM,
+    SOLVERS,
+    StepControl,
+)
 
 #: The most points one command-line range may hold: a guard against a typo (``1:100:1e-9``)
 #: that would allocate terabytes before any check; a larger grid is several runs.
@@ -206,14 +212,14 @@ def tolerance_or_off(flag: str, auto: bool = False):
         word = text.strip().lower()
         if word in ("off", "none"):
             return None
-        if auto and word == "auto":
-            return "auto"
+        if auto and word == AUTO:
+            return AUTO
         try:
             return float(text)
         except ValueError:
+            words = f", 'off' or {AUTO!r}" if auto else " or 'off'"
             raise argparse.ArgumentTypeError(
-                f"{flag} must be a tolerance in (0, 1), 'off'{' or auto' if auto else ''}, "
-                f"got {text!r}") from None
+                f"{flag} must be a tolerance in (0, 1){words}, got {text!r}") from None
     return parse
 
 
