@@ -105,22 +105,38 @@ def test_a_cells_jump_does_not_depend_on_its_pool(models, monkeypatch):
     is doing: 32 cells at one frequency in one 32-lane pool and in 4 lanes give every cell
     the same jump and the same metrics. With the fits 2 at a time, several batches of
     tries run in most of the wide pool's rounds (before, a lane not among the first
-    :data:`~jaxdea.engine.extrapolate.TRIES` tried only after its next cycle)."""
+    :data:`~jaxdea.engine.extrapolate.TRIES` tried only after its next cycle); in batches
+    of a quarter of the pool (:data:`~jaxdea.engine.extrapolate.TRY_BATCHES`, as an
+    accelerator's wide pools fit theirs) the same again."""
     monkeypatch.setattr(extrapolate, "TRIES", 2)
     model = models["dcdea_ls"]
     rng = np.random.default_rng(3)
     n = 32
     loads = make_loadings(model, 10 ** rng.uniform(-3, -2, n), 10 ** rng.uniform(-1, 0, n),
                           np.full(n, 120.0), "A")
-    runs = [jax.jit(lambda ld, w=w, x=x: run_protocol(
-        model.actuator, ld, cycles=60, average=5, settle=1e-8, require_settled=False,
-        control=jaxdea.StepControl(extrapolate=x), lanes=w, pools=(w,), driven=(0,)))(
-        loads) for w, x in ((n, 1e-7), (4, 1e-7), (n, None))]
+
+    def run(w, x, batches):
+        monkeypatch.setattr(extrapolate, "TRY_BATCHES", batches)
+        return jax.jit(lambda ld: run_protocol(
+            model.actuator, ld, cycles=60, average=5, settle=1e-8, require_settled=False,
+            control=jaxdea.StepControl(extrapolate=x), lanes=w, pools=(w,), driven=(0,)))(
+            loads)
+
+    runs = [run(n, 1e-7, n), run(4, 1e-7, n), run(n, None, n), run(n, 1e-7, 4)]
+    assert extrapolate.try_width(n) == n // 4
     # cells that jumped (a jump skips cycles: fewer steps than with the early exit alone)
     assert (np.asarray(runs[0].steps) < np.asarray(runs[2].steps)).sum() > n // 2
-    for k in ("P_out", "P_in", "amplitude", "cycles_run", "steps"):
-        np.testing.assert_allclose(np.asarray(getattr(runs[1], k)),
-                                   np.asarray(getattr(runs[0], k)), rtol=1e-12, err_msg=k)
+    for other in (runs[1], runs[3]):
+        for k in ("P_out", "P_in", "amplitude", "cycles_run", "steps"):
+            np.testing.assert_allclose(np.asarray(getattr(other, k)),
+                                       np.asarray(getattr(runs[0], k)), rtol=1e-12, err_msg=k)
+
+
+def test_wide_pools_fit_their_tries_in_a_few_batches():
+    """The CPU's pools (128 lanes) fit :data:`~jaxdea.engine.extrapolate.TRIES` lanes at a
+    time, as before; an accelerator's pool as wide as a chunk fits 1/8 of its lanes at a
+    time, not 16 (a round would launch the fit's kernels thousands of times)."""
+    assert [extrapolate.try_width(w) for w in (8, 128, 250_000)] == [8, 16, 31_250]
 
 
 def test_extrapolate_is_checked_and_recorded(models):

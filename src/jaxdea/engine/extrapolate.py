@@ -191,6 +191,18 @@ AGREE = 10.0
 #: tries in the same round, in batches of this many (the fit costs about a step per lane; a
 #: vmap over the whole pool every round cost +27 % per lane-step, batches of 16 +4 %).
 TRIES = 16
+#: A pool wider than ``TRIES x TRY_BATCHES`` lanes (an accelerator's, as wide as a chunk)
+#: fits its lanes in batches of ``1/TRY_BATCHES`` of its width instead (:func:`jump`): each
+#: batch launches the fit's ~80 kernels, and in batches of 16 a pool of 10^5 lanes with a
+#: quarter of them at a cycle end would launch them thousands of times a round.
+TRY_BATCHES = 8
+
+
+def try_width(n_lanes: int) -> int:
+    """Lanes fitted together in a pool of ``n_lanes`` (:func:`jump`): :data:`TRIES`, or
+    ``1/``:data:`TRY_BATCHES` of a wider pool, so that a round fits its lanes in at most
+    :data:`TRY_BATCHES` batches."""
+    return min(n_lanes, max(TRIES, -(-n_lanes // TRY_BATCHES)))
 
 
 def record(lane, cycles, average):
@@ -250,7 +262,7 @@ def jump(lane, want, cycles, average, tol):
     same round (the pool's width and its tail pools do not change a cell's result).
     """
     n = want.shape[0]
-    k = min(TRIES, n)
+    k = try_width(n)
     target = jnp.full(k, landing_cycle(cycles, average), lane.cycle.dtype)
 
     def batch(carry):
