@@ -188,13 +188,15 @@ def landing_cycle(cycles, average):
 AGREE = 10.0
 
 #: Lanes whose jumps are fitted together (:func:`jump`): every lane that recorded a new cycle
-#: tries in the same round, in batches of this many (the fit costs about a step per lane; a
-#: vmap over the whole pool every round cost +27 % per lane-step, batches of 16 +4 %).
+#: tries in the same round, in batches of this many, or more in a wide pool
+#: (:func:`try_width`). A vmap over the whole pool every round cost +27 % per lane-step,
+#: batches of 16 +4 %.
 TRIES = 16
 #: A pool wider than ``TRIES x TRY_BATCHES`` lanes (an accelerator's, as wide as a chunk)
 #: fits its lanes in batches of ``1/TRY_BATCHES`` of its width instead (:func:`jump`): each
-#: batch launches the fit's ~80 kernels, and in batches of 16 a pool of 10^5 lanes with a
-#: quarter of them at a cycle end would launch them thousands of times a round.
+#: batch launches the fit's 77-94 kernels (125-180 us for 16 lanes on this project's CPUs),
+#: and in batches of 16 a pool of 10^5 lanes with a quarter of them at a cycle end would
+#: launch them thousands of times a round.
 TRY_BATCHES = 8
 
 
