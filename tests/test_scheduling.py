@@ -20,7 +20,13 @@ import numpy as np
 import pytest
 
 import jaxdea
-from jaxdea.engine.batch import CPU_LANES, default_lanes, driven_membranes, schedule
+from jaxdea.engine.batch import (
+    CPU_LANES,
+    batch_cells,
+    default_lanes,
+    driven_membranes,
+    schedule,
+)
 from jaxdea.engine.lanes import lane_pools, run_protocol
 from jaxdea.engine.periodic import SHOOTING_LANES, shooting_lanes
 from jaxdea.engine.sharding import on_accelerator
@@ -61,6 +67,38 @@ def test_schedule_queues_each_device_lowest_frequency_first():
             got = set(ranks[order[k * local:(k + 1) * local]].tolist())
             want = set(range(k, freq.size, n_dev))
             assert want <= got and got - want <= {freq.size - 1}, (n_dev, k)
+
+
+def test_small_batches_share_a_compiled_program_and_keep_their_results(model):
+    """Small batches run padded to a power of two (:func:`batch_cells`): a sweep of 5
+    frequencies runs the program a sweep of 3 compiled, and a cell's numbers are those it
+    gets in a batch of another size (9 cells: 16 slots, another program, wider pool)."""
+    assert [batch_cells(n) for n in (1, 3, 8, 9, 16, 17, 100, 128, 129, 4096)] == [
+        8, 8, 8, 16, 16, 32, 128, 128, 129, 4096]
+    traced = []
+
+    def listen(name, secs, **kw):
+        if name == "/jax/core/compile/jaxpr_trace_duration":  # (a compile may be a cache load)
+            traced.append(secs)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        kw = dict(mass=2e-3, damping=0.5, cycles=6, average=2)
+        three = jaxdea.sweep(model, freq=[70.0, 110.0, 160.0], **kw)
+        first = sum(traced)
+        traced.clear()
+        five = jaxdea.sweep(model, freq=[70.0, 90.0, 110.0, 130.0, 160.0], **kw)
+        again = sum(traced)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert first > 0.5 and again < 0.1 * first, (first, again)  # the engine traced once
+    nine = jaxdea.sweep(model, freq=[70.0, 80.0, 90.0, 100.0, 110.0, 130.0, 150.0, 160.0,
+                                     190.0], **kw)
+    assert (three.status == 0).all() and (nine.status == 0).all()
+    for k in ("P_out", "P_in", "amplitude", "steps"):
+        for other in (five, nine):
+            np.testing.assert_allclose(other[k].sel(f=three.f).values, three[k].values,
+                                       rtol=1e-12, atol=0, err_msg=k)
 
 
 def test_lane_pools():

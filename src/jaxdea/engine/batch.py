@@ -43,6 +43,37 @@ _rest_states = eqx.filter_jit(rest_states)
 #: ``bench/NOTES.md``.
 CPU_LANES = 128
 
+#: Smallest per-device batch of independent cells (:func:`batch_cells`).
+SMALLEST_BATCH = 8
+
+
+def batch_cells(local: int) -> int:
+    """Cells per device that a batch of ``local`` independent cells per device is run as:
+    ``local`` padded (with copies of its highest-frequency cell, :func:`dealt`) up to a
+    power of two from :data:`SMALLEST_BATCH` to :data:`CPU_LANES`; above that, ``local``.
+
+    Why: a compiled engine is specific to its batch's shape, and compiling one costs 5-10 s
+    on a CPU where running a small sweep costs less. With the padding, sweeps of 3 or 7
+    frequencies, or 9 to 16, share one compiled program (in memory, and through the on-disk
+    compile cache across runs); a batch this small fits one lane pool at once, so every
+    cell still has its own lane from its start and its results do not change, and the
+    padding's copies finish with the cell they copy. Larger batches (power-map chunks) keep
+    their own size: their shapes are fixed by the chunking, and padding them would be work.
+    Measured (``bench/NOTES.md``): 66 tests of five modules, 2 workers, cold compile cache:
+    56 programs of over 1 s compiled (431 s) without, 49 (380 s) with; 360 -> 312 s.
+
+    **Arguments:**
+
+    - `local`: the batch's cells per device.
+
+    **Returns:**
+
+    The cells per device the batch runs as (``>= local``).
+    """
+    if local > CPU_LANES:
+        return int(local)
+    return max(SMALLEST_BATCH, 1 << (int(local) - 1).bit_length())
+
 
 def run_from_rest(actuator, loadings, successor, *, cycles, average, control, lanes,
                   early_exit, driven=None):
@@ -58,22 +89,24 @@ def driven_membranes(loadings: Loading) -> tuple[int, ...]:
     return tuple(int(j) for j in np.nonzero(np.any(amp != 0, axis=0))[0])
 
 
-def deal_slots(n: int, n_dev: int) -> np.ndarray:
+def deal_slots(n: int, n_dev: int, local: int | None = None) -> np.ndarray:
     """Position in the dealt order of each of ``n_dev`` equal device slices' slots (values
-    ``>= n`` are padding)."""
-    local = -(-n // n_dev)
+    ``>= n`` are padding); ``local`` slots per device (default: as few as hold ``n``)."""
+    local = local or -(-n // n_dev)
     return np.arange(local * n_dev).reshape(local, n_dev).T.ravel()
 
 
-def dealt(n: int, n_dev: int) -> np.ndarray:
-    """Cell order that deals ``n`` cells round-robin to ``n_dev`` equal device slices (padded
-    by repeating the last cell): every device gets the same mix of frequencies."""
-    return np.minimum(deal_slots(n, n_dev), n - 1)
+def dealt(n: int, n_dev: int, local: int | None = None) -> np.ndarray:
+    """Cell order that deals ``n`` cells round-robin to ``n_dev`` equal device slices of
+    ``local`` slots (:func:`deal_slots`; padded by repeating the last cell): every device
+    gets the same mix of frequencies."""
+    return np.minimum(deal_slots(n, n_dev, local), n - 1)
 
 
-def schedule(freq: np.ndarray, n_dev: int) -> np.ndarray:
+def schedule(freq: np.ndarray, n_dev: int, local: int | None = None) -> np.ndarray:
     """Queue order of a batch of independent cells: lowest frequency first, dealt
-    round-robin over ``n_dev`` equal device slices (padded by repeating the last cell).
+    round-robin over ``n_dev`` equal device slices of ``local`` slots (default: as few as
+    hold the cells; padded by repeating the last cell, the highest frequency).
 
     Why: the lane pool drains its queue in order, and a batch takes as long as its slowest
     lane. The cells that can cost the most are the low-frequency ones (a cell that never
@@ -83,7 +116,7 @@ def schedule(freq: np.ndarray, n_dev: int) -> np.ndarray:
     large lane pools stay busy until the batch is done.
     """
     order = np.argsort(np.asarray(freq), kind="stable")
-    return order[dealt(order.size, n_dev)]
+    return order[dealt(order.size, n_dev, local)]
 
 
 def scheduled_batches(cells: np.ndarray, size: int, freq: np.ndarray, n_dev: int):
@@ -139,14 +172,14 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
     check_choice("protocol", protocol, PROTOCOLS)
     n = loadings.drive.frequency.shape[0]
     devices = tuple(devices or jax.devices()[:1])
-    local = -(-n // len(devices))
+    local = batch_cells(-(-n // len(devices)))  # shared programs for small batches
     driven = driven_membranes(loadings)
     if protocol == "periodic":
         from .periodic import periodic_cells
         return _dealt_run(lambda ld: periodic_cells(
             model.actuator, ld, tol=tol, control=control,
             lanes=lanes or default_lanes(local, devices),
-            devices=devices, driven=driven), loadings, n, devices)
+            devices=devices, driven=driven), loadings, n, devices, local)
     if protocol == "continuation" and successor is None:
         raise SweepError("protocol='continuation' needs the successor of each cell")
     if protocol == "paper" and initial is None:  # independent cells: schedule them
@@ -160,7 +193,7 @@ def run_cells(model: Model, loadings: Loading, *, cycles: int = 100, average: in
                 model.actuator, ld, cycles=jnp.asarray(cycles, jnp.int32),
                 average=jnp.asarray(average, jnp.int32), control=control, lanes=lanes,
                 settle=early_exit, driven=driven)
-        return _dealt_run(run, loadings, n, devices)
+        return _dealt_run(run, loadings, n, devices, local)
     if protocol == "paper" or successor is None:
         successor = np.full(n, n)
     # a chain is busy on one lane
@@ -182,17 +215,17 @@ def _run_engine(model, loadings, cycles, average, control, lanes, initial, succe
                 settle=early_exit, require_settled=False, driven=driven)
 
 
-def _dealt_run(run, loadings: Loading, n: int, devices: tuple):
+def _dealt_run(run, loadings: Loading, n: int, devices: tuple, local: int):
     """``run(loadings)`` on the ``n`` independent cells in :func:`schedule` order (lowest
-    frequency first, dealt round-robin over ``devices``), its per-cell results put back in
-    cell order.
+    frequency first, dealt round-robin over ``devices``, ``local`` slots each), its per-cell
+    results put back in cell order.
 
     The results are reordered on the host: indexing arrays sharded over the devices with a
     replicated index compiles to a gather with an all-reduce across the devices, which XLA
     aborts the process on when one device's thread is 40 s late. Cells are independent, so
     nothing here needs a collective. (Traced results, one device only, stay traced.)"""
-    order = schedule(np.asarray(loadings.drive.frequency), len(devices))
-    real = deal_slots(n, len(devices)) < n  # the slots that are not padding
+    order = schedule(np.asarray(loadings.drive.frequency), len(devices), local)
+    real = deal_slots(n, len(devices), local) < n  # the slots that are not padding
     where = np.empty(n, dtype=np.int64)  # slot of each cell
     where[order[real]] = np.nonzero(real)[0]
     res = jax.tree_util.tree_map(_on_host, run(take_cells(loadings, order)))
