@@ -52,13 +52,15 @@ def batch_cells(local: int) -> int:
     ``local`` padded (with copies of its highest-frequency cell, :func:`dealt`) up to a
     power of two from :data:`SMALLEST_BATCH` to :data:`CPU_LANES`; above that, ``local``.
 
-    Why: a compiled engine is specific to its batch's shape, and compiling one costs 5-10 s
+    Why: a compiled engine is specific to its batch's shape, and compiling one costs 5-15 s
     on a CPU where running a small sweep costs less. With the padding, sweeps of 3 or 7
-    frequencies, or 9 to 16, share one compiled program (in memory, and through the on-disk
-    compile cache across runs); a batch this small fits one lane pool at once, so every
-    cell still has its own lane from its start and its results do not change, and the
-    padding's copies finish with the cell they copy. Larger batches (power-map chunks) keep
-    their own size: their shapes are fixed by the chunking, and padding them would be work.
+    frequencies, or 9 to 16 (per device), share one compiled program (in memory, and
+    through the on-disk compile cache across runs). A batch this small fits one default
+    lane pool at once, so every cell still has its own lane from its start; cells are
+    independent, so a cell's numbers do not depend on the batch (1e-12 in
+    ``tests/test_scheduling.py``), and the padding's copies finish with the cell they copy.
+    Larger batches (power-map chunks) keep their own size: their shapes are fixed by the
+    chunking, and padding them would be work.
     Measured (``bench/NOTES.md``): 66 tests of five modules, 2 workers, cold compile cache:
     56 programs of over 1 s compiled (431 s) without, 49 (380 s) with; 360 -> 312 s.
 
