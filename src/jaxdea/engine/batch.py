@@ -60,9 +60,8 @@ def batch_cells(local: int) -> int:
     independent, so a cell's numbers do not depend on the batch (1e-12 in
     ``tests/test_scheduling.py``), and the padding's copies finish with the cell they copy.
     Larger batches (power-map chunks) keep their own size: their shapes are fixed by the
-    chunking, and padding them would be work.
-    Measured (``bench/NOTES.md``): 66 tests of five modules, 2 workers, cold compile cache:
-    56 programs of over 1 s compiled (431 s) without, 49 (380 s) with; 360 -> 312 s.
+    chunking, and padding them would be work. What it saves is measured in
+    ``bench/NOTES.md``.
 
     **Arguments:**
 
