@@ -170,3 +170,36 @@ def test_jacobian_by_columns_equals_jacfwd():
     batched = jax.vmap(lambda a: jacobian_by_columns(lambda z: f(z, a), z0)[0][0])(
         jnp.array([0.5, 2.0]))
     assert np.allclose(batched[1], jax.jacfwd(lambda z: f(z, 2.0)[0][0])(z0), rtol=1e-12)
+
+
+def test_a_host_solve_under_grad_reuses_the_programs_compiled_outside_it():
+    """``implicit`` runs its host solver eagerly also inside ``jax.grad``'s trace, without a
+    second compile of the jitted engines it calls (``jax.ensure_compile_time_eval`` put a
+    flag in every jit's cache key: each engine compiled twice, ~10 s per shot); the value
+    and the derivative are the solver's."""
+    import jax.numpy as jnp
+
+    from jaxdea.engine.sensitivity import implicit
+
+    traced = []
+
+    @jax.jit
+    def engine(x):
+        traced.append(x.shape)
+        return jnp.sin(x) * x
+
+    def solve(theta, need_jac):
+        y = np.asarray(engine(jnp.asarray(theta)))
+        jac = np.diag(np.cos(theta) * theta + np.sin(theta)) if need_jac else None
+        return {"y": y}, ({"y": jac} if need_jac else None)
+
+    theta = np.array([0.3, 0.7, 1.1])
+    solve(theta, False)  # as a design map calls its solver, outside any implicit function
+    assert len(traced) == 1
+    assert np.allclose(implicit(solve, theta)["y"], np.sin(theta) * theta, rtol=1e-15)
+    g = jax.grad(lambda th: implicit(solve, th)["y"] @ jnp.arange(1.0, 4.0))(theta)
+    assert np.allclose(g, np.arange(1.0, 4.0) * (np.cos(theta) * theta + np.sin(theta)),
+                       rtol=1e-14)
+    r = jax.jacrev(lambda th: implicit(solve, th)["y"])(theta)
+    assert np.allclose(r, np.diag(np.cos(theta) * theta + np.sin(theta)), rtol=1e-14)
+    assert len(traced) == 1, "the engine was traced again inside jax.grad / jax.jacrev"

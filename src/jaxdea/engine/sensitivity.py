@@ -35,6 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+try:  # eval_context: see host_eval
+    from jax._src import core as jax_core
+except ImportError:  # pragma: no cover - a JAX that moved its internals
+    jax_core = None
+
 from ..models.cone import ConeState
 from .batch import driven_membranes
 from .lane_state import rest_states
@@ -372,7 +377,7 @@ def implicit(solve: Callable, theta):
     ``values`` as JAX arrays; differentiable in forward (``jax.jvp``, ``jax.jacfwd``) and
     reverse mode (``jax.grad``, ``jax.jacrev``; the tangent rule is linear in the tangent).
     """
-    with jax.ensure_compile_time_eval():  # the host solver computes eagerly
+    with host_eval():  # the host solver computes eagerly
         values, _ = solve(_concrete(theta), False)
     return {k: jnp.asarray(v) for k, v in values.items()}
 
@@ -380,7 +385,7 @@ def implicit(solve: Callable, theta):
 @implicit.defjvp
 def _implicit_jvp(solve, primals, tangents):
     (theta,), (dtheta,) = primals, tangents
-    with jax.ensure_compile_time_eval():  # the host solver computes eagerly
+    with host_eval():  # the host solver computes eagerly
         values, jacs = solve(_concrete(theta), True)
     out = {k: jnp.asarray(v) for k, v in values.items()}
     tan = {}
@@ -388,6 +393,21 @@ def _implicit_jvp(solve, primals, tangents):
         j = None if jacs is None else jacs.get(k)
         tan[k] = jnp.zeros_like(v) if j is None else jnp.asarray(j) @ dtheta
     return out, tan
+
+
+def host_eval():
+    """A context in which JAX computes eagerly, also inside a trace (a custom rule that
+    ``jax.grad`` stages): the host solvers' jitted engines then run on concrete arrays.
+
+    ``jax.ensure_compile_time_eval`` does this by setting the ``eager_constant_folding``
+    flag, which is part of every jit's cache key: each engine program called inside it was
+    compiled a second time (~10 s each for a shot) beside the one that the same engine uses
+    outside ``jax.grad``. JAX's evaluation context runs the calls eagerly with the flag
+    unchanged, so both share one compiled program. Falls back to the public context manager
+    on a JAX without it (correct, only compiling twice).
+    """
+    context = getattr(jax_core, "eval_context", None)
+    return context() if context is not None else jax.ensure_compile_time_eval()
 
 
 def _concrete(theta) -> np.ndarray:
