@@ -71,8 +71,9 @@ def test_schedule_queues_each_device_lowest_frequency_first():
 
 def test_small_batches_share_a_compiled_program_and_keep_their_results(model):
     """Small batches run padded to a power of two (:func:`batch_cells`): a sweep of 5
-    frequencies runs the program a sweep of 3 compiled, and a cell's numbers are those it
-    gets in a batch of another size (9 cells: 16 slots, another program, wider pool)."""
+    frequencies and a power map of 2 cells run the program a sweep of 3 compiled, and a
+    cell's numbers are those it gets in a batch of another size (9 cells: 16 slots, another
+    program, wider pool)."""
     assert [batch_cells(n) for n in (1, 3, 8, 9, 16, 17, 100, 128, 129, 4096)] == [
         8, 8, 8, 16, 16, 32, 128, 128, 129, 4096]
     jax.clear_caches()  # whatever ran before in this process, the first sweep traces
@@ -89,6 +90,9 @@ def test_small_batches_share_a_compiled_program_and_keep_their_results(model):
         first = sum(traced)
         traced.clear()
         five = jaxdea.sweep(model, freq=[70.0, 90.0, 110.0, 130.0, 160.0], **kw)
+        # and a small power map of the same model and settings runs that program too
+        small = jaxdea.powermap(model, mass=[2e-3], damping=[0.5], freq=[70.0, 160.0],
+                                cycles=6, average=2, progress=False)
         again = sum(traced)
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
@@ -100,6 +104,9 @@ def test_small_batches_share_a_compiled_program_and_keep_their_results(model):
         for other in (five, nine):
             np.testing.assert_allclose(other[k].sel(f=three.f).values, three[k].values,
                                        rtol=1e-12, atol=0, err_msg=k)
+        np.testing.assert_allclose(small[k].values.ravel(),
+                                   three[k].sel(f=[70.0, 160.0]).values, rtol=1e-12, atol=0,
+                                   err_msg=k)
 
 
 def test_lane_pools():

@@ -208,7 +208,9 @@ def cell_loadings(amplitude, frequency, duty, phase, mass, damping, payload=None
         drive=SquareWave(
             amplitude=jnp.asarray(amplitude),
             frequency=jnp.asarray(frequency),
-            duty=jnp.broadcast_to(jnp.asarray(duty), (n,)),
+            # float, not weak: a map's duty (a Python float) and a sweep's (the model's
+            # array) then give the same program
+            duty=jnp.broadcast_to(jnp.asarray(duty, dtype=float), (n,)),
             phase=jnp.asarray(phase),
         ),
         payload=(LinearViscous(mass=jnp.asarray(mass), damping=jnp.asarray(damping))
