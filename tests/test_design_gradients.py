@@ -170,6 +170,17 @@ def test_jacobian_by_columns_equals_jacfwd():
     batched = jax.vmap(lambda a: jacobian_by_columns(lambda z: f(z, a), z0)[0][0])(
         jnp.array([0.5, 2.0]))
     assert np.allclose(batched[1], jax.jacfwd(lambda z: f(z, 2.0)[0][0])(z0), rtol=1e-12)
+    # only the columns asked for (in any order; traced: one program for every choice), the
+    # others NaN, under the vmap; the aux of the first pass
+    some = jax.jit(jax.vmap(lambda a, order, count: jacobian_by_columns(
+        lambda z: f(z, a), z0, order, count), in_axes=(0, None, None)))
+    for order, count in (([2, 0, 1], 2), ([1, 2, 0], 1), ([0, 1, 2], 3)):
+        (j3, k3), n3 = some(jnp.array([0.5, 2.0]), jnp.array(order), jnp.array(count))
+        (j2, k2), n2 = jax.jacfwd(lambda z: f(z, 2.0), has_aux=True)(z0)
+        done = np.isin(np.arange(3), order[:count])
+        assert np.allclose(j3[1][:, done], j2[:, done], rtol=1e-12)
+        assert np.allclose(k3[1][:, done], k2[:, done], rtol=1e-12)
+        assert np.isnan(j3[:, :, ~done]).all() and int(n3[1]) == int(n2)
 
 
 def test_a_host_solve_under_grad_reuses_the_programs_compiled_outside_it():
@@ -179,7 +190,7 @@ def test_a_host_solve_under_grad_reuses_the_programs_compiled_outside_it():
     and the derivative are the solver's."""
     import jax.numpy as jnp
 
-    from jaxdea.engine.sensitivity import implicit
+    from jaxdea.engine.implicit import implicit
 
     traced = []
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from functools import partial
 from typing import NamedTuple
 
 import equinox as eqx
@@ -35,13 +34,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-try:  # eval_context: see host_eval
-    from jax._src import core as jax_core
-except ImportError:  # pragma: no cover - a JAX that moved its internals
-    jax_core = None
-
 from ..models.cone import ConeState
 from .batch import driven_membranes
+from .implicit import implicit
 from .lane_state import rest_states
 from .lanes import run_protocol
 from .periodic import (
@@ -109,7 +104,7 @@ def _settle(actuator, loadings, initial, *, warmup, tol, control, lanes, driven)
 
     It takes the built models (:func:`_built`), not ``build`` and ``theta``, and always
     explicit start states: one compiled program then serves every parameterisation of the
-    same model (a :class:`~jaxdea.studies.design.Sub` build and the full one, any parameter
+    same model (a :class:`Sub` build and the full one, any parameter
     names) and every start (rest or a continuation). Measured: ``docs/performance.md``."""
     def one(act, ld, y0):
         return run_protocol(act, ld, cycles=warmup, average=1, settle=tol, control=control,
@@ -129,7 +124,8 @@ def _built(build, theta):
     return jax.vmap(one)(build, theta)
 
 
-def jacobian_by_columns(f, z0: jax.Array):
+def jacobian_by_columns(f, z0: jax.Array, order: jax.Array | None = None,
+                        count: jax.Array | None = None):
     """``jax.jacfwd(f, has_aux=True)(z0)`` computed as one ``jax.jvp`` per basis direction,
     in sequence (``jax.lax.map``), instead of with the m tangents batched.
 
@@ -150,28 +146,56 @@ def jacobian_by_columns(f, z0: jax.Array):
 
     - `f`: ``z -> (out, aux)``, ``out`` a pytree of arrays.
     - `z0`: ``(m,)`` point of the derivative.
+    - `order`, `count`: only the columns ``order[:count]`` (``(m,)`` integers, a scalar;
+      both may be traced), one pass each in that order; the others are NaN. One compiled
+      program then serves any set of columns (``count`` >= 1). Default: every column.
 
     **Returns:**
 
     ``(jac, aux)``: ``jac`` as ``out`` with a trailing axis of size m (as ``jax.jacfwd``),
     ``aux`` that of the first pass.
     """
+    m = z0.shape[0]
+    eye = jnp.eye(m, dtype=z0.dtype)
+
     def column(e):
         _, tangent, aux = jax.jvp(f, (z0,), (e,), has_aux=True)
         return tangent, aux
 
-    cols, aux = jax.lax.map(column, jnp.eye(z0.shape[0], dtype=z0.dtype))
-    return (jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1), cols),
-            jax.tree_util.tree_map(lambda a: a[0], aux))
+    if order is None:
+        cols, aux = jax.lax.map(column, eye)
+        return (jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1), cols),
+                jax.tree_util.tree_map(lambda a: a[0], aux))
+
+    shapes = jax.eval_shape(column, eye[0])
+
+    def body(i, carry):
+        cols, aux = carry
+        tangent, new = column(eye[order[i]])
+        cols = jax.tree_util.tree_map(lambda c, t: c.at[order[i]].set(t), cols, tangent)
+        aux = jax.tree_util.tree_map(lambda a, b: jnp.where(i == 0, b, a), aux, new)
+        return cols, aux
+
+    cols = jax.tree_util.tree_map(lambda s: jnp.full((m,) + s.shape, jnp.nan, s.dtype),
+                                  shapes[0])
+    aux = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes[1])
+    cols, aux = jax.lax.fori_loop(0, count, body, (cols, aux))
+    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1), cols), aux
 
 
-def _shoot(build, theta, y, active, *, params, control, lanes, driven, columns=False):
+def _shoot(build, theta, y, active, order=None, count=None, *, params, control, lanes,
+           driven):
     """One period of every active cell from ``y`` with the Jacobians of the end state and of
     the metrics with respect to the start state (and the parameters if ``params``), and the
     gap ``Phi_T(y) - y``. The Newton step is solved on the host
     (:func:`jaxdea.engine.periodic.newton_step`): a batched LAPACK solve inside a program
-    split over devices can deadlock XLA's CPU thread pool. ``columns``: the Jacobians by
-    :func:`jacobian_by_columns` (one device) rather than ``jax.jacfwd`` (several)."""
+    split over devices can deadlock XLA's CPU thread pool.
+
+    With ``order`` and ``count`` (one device): the Jacobians by :func:`jacobian_by_columns`,
+    its columns ``order[:count]`` only (the states' and the parameters asked for; the others
+    NaN), so that one program serves a solve with every parameter's derivative, with the
+    peak search's shift only and with none. Without (several devices): ``jax.jacfwd``, every
+    column."""
 
     def one(build, th, y, act):
         flat = flatten_dynamical(y)
@@ -186,11 +210,34 @@ def _shoot(build, theta, y, active, *, params, control, lanes, driven, columns=F
             return out, res
 
         z0 = jnp.zeros(d + n if params else d, flat.dtype)
-        (j_out, j_m), res = (jacobian_by_columns(period, z0) if columns
+        (j_out, j_m), res = (jacobian_by_columns(period, z0, order, count)
+                             if order is not None
                              else jax.jacfwd(period, has_aux=True)(z0))
         return res, j_out, j_m, flatten_dynamical(res.final_state) - flat
 
     return jax.vmap(one)(build, theta, y, active)
+
+
+class Sub(eqx.Module):
+    """``build`` with only the ``free`` entries of ``theta`` varied (the rest held): a
+    solve on several devices that needs the derivatives in those parameters only."""
+
+    build: Callable
+    theta: jax.Array
+    free: tuple = eqx.field(static=True)
+
+    def __call__(self, sub):
+        return self.build(self.theta.at[jnp.asarray(self.free)].set(sub))
+
+
+def _columns(jac, n: int) -> tuple[int, ...]:
+    """The parameter indices whose derivatives ``jac`` asks for (see :func:`solve_designs`)."""
+    if jac is True or jac is False:
+        return tuple(range(n)) if jac else ()
+    free = tuple(sorted({int(i) for i in jac}))
+    if not free or free[0] < 0 or free[-1] >= n:
+        raise ValueError(f"jac: parameter indices in [0, {n}), got {jac!r}")
+    return free
 
 
 def _settle_split(_, actuator, loadings, initial, **static):
@@ -210,7 +257,7 @@ def _stages(devices: tuple):
     runs its own designs to the end; no collective) or on one device."""
     if len(devices) < 2:
         return (lambda a, ld, y0, **kw: _host(_SETTLE(a, ld, y0, **kw)),
-                lambda b, th, y, a, **kw: _host(_SHOOT(b, th, y, a, columns=True, **kw)))
+                lambda b, th, y, a, **kw: _host(_SHOOT(b, th, y, a, **kw)))
     settle, shoot = cell_sharded(_settle_split, devices), cell_sharded(_shoot_split, devices)
     return (lambda a, ld, y0, **kw: settle(None, a, ld, y0, **kw),
             lambda b, th, y, a, **kw: shoot(None, b, th, y, a, **kw))
@@ -237,7 +284,7 @@ def stack_designs(builds) -> Callable:
 
 
 def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initial=None,
-                  jac: bool = True, stacked: bool = False,
+                  jac: bool | tuple[int, ...] = True, stacked: bool = False,
                   devices: tuple | None = None) -> SteadyResult:
     """Periodic orbits, metrics and (optionally) their implicit derivatives.
 
@@ -249,7 +296,8 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
     - `settings`: :class:`Steady`.
     - `initial`: start states ``(K, C, ...)`` of the settling stage (default, and for
       cells whose start state is not finite: rest at the static equilibrium).
-    - `jac`: also return ``d metrics / d theta``.
+    - `jac`: also return ``d metrics / d theta`` (True), or only its columns of these
+      parameter indices (the others NaN; e.g. the peak search's frequency shift).
     - `stacked`: ``build``'s arrays carry a leading design axis (:func:`stack_designs`);
       default: one build shared by every design.
     - `devices`: split the designs over these JAX devices (each runs its share to the end,
@@ -264,7 +312,8 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
     if theta.ndim != 2:
         raise ValueError(f"theta must be (designs, parameters), got shape {theta.shape}")
     s = settings
-    k = theta.shape[0]
+    k, n = theta.shape
+    free = _columns(jac, n)
     devices = tuple(devices or jax.devices()[:1])
     if k < len(devices):
         devices = devices[:k]
@@ -288,9 +337,23 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
     y = res.final_state
     residual = np.asarray(res.residual).copy()
     d = int(flatten_dynamical(y).shape[-1])
-    n = theta.shape[1]
+    if len(devices) < 2:
+        # every shot is one program with the d + n columns, of which it computes the
+        # states' and those of ``free`` (jacobian_by_columns): the same program for any jac
+        rest_cols = [d + i for i in range(n) if i not in free]
+        order = np.array(list(range(d)) + [d + i for i in free] + rest_cols)
+        shot_build, shot_th = build, th
+        columns = dict(order=jnp.asarray(order), count=jnp.asarray(d + len(free)), params=True)
+        at = list(free)  # where ``free``'s derivatives sit among the tangent's parameters
+    else:
+        # jax.jacfwd computes every column of its tangent: only the parameters asked for
+        sub = len(free) < n and bool(free)
+        shot_build = Sub(build, jnp.asarray(th), free) if sub else build
+        shot_th = th[:, list(free)] if sub else th
+        columns = dict(params=bool(free))
+        at = list(range(len(free))) if sub else list(free)
     values = np.full((k, n_cells, len(METRICS)), np.nan)
-    jacs = np.full((k, n_cells, len(METRICS), n), np.nan) if jac else None
+    jacs = np.full((k, n_cells, len(METRICS), n), np.nan) if free else None
     final = jax.tree_util.tree_map(np.array, y)
     # every cell that settled or needs shooting gets at least one Jacobian pass: it confirms
     # convergence and gives the derivatives at the same time
@@ -301,8 +364,8 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
         if not pending.any():
             break
         r, j_out, j_m, gap = _trim(shoot(
-            build, th, _pad(y, kp), _pad(pending, kp) & (np.arange(kp) < k)[:, None],
-            params=jac, control=s.control, lanes=lanes, driven=driven), k)
+            shot_build, shot_th, _pad(y, kp), _pad(pending, kp) & (np.arange(kp) < k)[:, None],
+            control=s.control, lanes=lanes, driven=driven, **columns), k)
         step = newton_step(j_out[..., :d].reshape(-1, d, d), gap.reshape(-1, d),
                            pending.reshape(-1)).reshape(k, n_cells, d)
         flat = np.asarray(flatten_dynamical(y))
@@ -328,11 +391,13 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
             final = jax.tree_util.tree_map(
                 lambda a, b: np.where(converged.reshape(converged.shape + (1,) * (a.ndim - 2)),
                                       a, b), y, final)
-            if jac:
+            if free:
+                cols = [d + i for i in at]
                 a = j_out[converged][..., :d]
-                b = j_out[converged][..., d:]
-                dy = solve_cells(np.eye(d) - a, b)
-                jacs[converged] = j_m[converged][..., d:] + j_m[converged][..., :d] @ dy
+                dy = solve_cells(np.eye(d) - a, j_out[converged][..., cols])
+                got = np.full(jacs[converged].shape, np.nan)
+                got[..., list(free)] = j_m[converged][..., cols] + j_m[converged][..., :d] @ dy
+                jacs[converged] = got
         pending = pending & ok & ~converged & np.isfinite(step).all(axis=-1)
         stepped |= pending
         flat = flat + np.where(pending[..., None], step, 0.0)
@@ -358,64 +423,6 @@ def _with_rest(rest, initial):
 def _trim(tree, k: int):
     """``tree``'s leading (design) axis cut back to ``k`` (undo :func:`_pad`)."""
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:k], tree)
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
-def implicit(solve: Callable, theta):
-    """A host-side solver as a differentiable JAX function of ``theta``.
-
-    **Arguments:**
-
-    - `solve`: ``theta (concrete numpy (n,)), need_jac -> (values, jacobians)``: ``values``
-      a dict of arrays, ``jacobians`` the same keys with one more trailing axis of size n
-      (None when ``need_jac`` is false). Keys whose jacobian is None (e.g. a status) get a
-      zero tangent.
-    - `theta`: ``(n,)`` parameters (concrete, or a JAX autodiff tracer of concrete values).
-
-    **Returns:**
-
-    ``values`` as JAX arrays; differentiable in forward (``jax.jvp``, ``jax.jacfwd``) and
-    reverse mode (``jax.grad``, ``jax.jacrev``; the tangent rule is linear in the tangent).
-    """
-    with host_eval():  # the host solver computes eagerly
-        values, _ = solve(_concrete(theta), False)
-    return {k: jnp.asarray(v) for k, v in values.items()}
-
-
-@implicit.defjvp
-def _implicit_jvp(solve, primals, tangents):
-    (theta,), (dtheta,) = primals, tangents
-    with host_eval():  # the host solver computes eagerly
-        values, jacs = solve(_concrete(theta), True)
-    out = {k: jnp.asarray(v) for k, v in values.items()}
-    tan = {}
-    for k, v in out.items():
-        j = None if jacs is None else jacs.get(k)
-        tan[k] = jnp.zeros_like(v) if j is None else jnp.asarray(j) @ dtheta
-    return out, tan
-
-
-def host_eval():
-    """A context in which JAX computes eagerly, also inside a trace (a custom rule that
-    ``jax.grad`` stages): the host solvers' jitted engines then run on concrete arrays.
-
-    ``jax.ensure_compile_time_eval`` does this by setting the ``eager_constant_folding``
-    flag, which is part of every jit's cache key: each engine program called inside it was
-    compiled a second time (~10 s each for a shot) beside the one that the same engine uses
-    outside ``jax.grad``. JAX's evaluation context runs the calls eagerly with the flag
-    unchanged, so both share one compiled program. Falls back to the public context manager
-    on a JAX without it (correct, only compiling twice).
-    """
-    context = getattr(jax_core, "eval_context", None)
-    return context() if context is not None else jax.ensure_compile_time_eval()
-
-
-def _concrete(theta) -> np.ndarray:
-    try:
-        return np.asarray(theta, dtype=float)
-    except jax.errors.TracerArrayConversionError:
-        raise TypeError("the steady-state objectives solve on the host: call them under "
-                        "jax.grad / jax.jacfwd / jax.jacrev, not under jax.jit or vmap") from None
 
 
 def steady_metrics(build: Callable, theta, settings: Steady = Steady()) -> dict[str, jax.Array]:

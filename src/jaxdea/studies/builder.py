@@ -69,17 +69,6 @@ class Builder(eqx.Module):
         return model.actuator, cell_loadings(amp, f, model.duty, ph, m, 0.0, law)
 
 
-class Sub(eqx.Module):
-    """``build`` with only the ``free`` entries of ``theta`` varied (the rest held)."""
-
-    build: Builder
-    theta: jax.Array
-    free: tuple = eqx.field(static=True)
-
-    def __call__(self, sub):
-        return self.build(self.theta.at[jnp.asarray(self.free)].set(sub))
-
-
 def resolve(model: Model, names, payload: PayloadLaw | None = None) -> dict[str, str]:
     """Validated names: ``{given name: full model path or payload name}``, in the order given.
 

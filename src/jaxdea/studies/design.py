@@ -30,10 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import SweepError, finite_array
-from ..engine.sensitivity import METRICS, Steady, implicit, solve_designs, stack_designs
+from ..engine.implicit import implicit
+from ..engine.sensitivity import METRICS, Steady, solve_designs, stack_designs
 from ..engine.step_control import StepControl
 from ..models.cone import Model
-from .builder import Builder, Sub, make_builder, resolve, split_names, theta_of
+from .builder import Builder, make_builder, resolve, split_names, theta_of
 from .loadings import check_cone_model
 from .peak_search import bracket_ready, next_frequencies, stationary_point
 
@@ -185,14 +186,11 @@ def _solve_grid(build, theta, f, state, settings, full_jac, sub_free, devices=No
     the Jacobian over the shift (and every parameter if ``full_jac``)."""
     k = theta.shape[0]
     builds = [eqx.tree_at(lambda x: x.freq, build, jnp.asarray(f[i])) for i in range(k)]
-    if not full_jac:
-        builds = [Sub(b, jnp.asarray(theta[i]), sub_free) for i, b in enumerate(builds)]
-    th = theta if full_jac else theta[:, list(sub_free)]
     # host arrays as they are: under jax.grad of peak_power, jnp.asarray here would give
     # tracers, which the host-side solve cannot read
     init = None if state is None else jax.tree_util.tree_map(np.asarray, state)
-    return solve_designs(stack_designs(builds), th, settings=settings, initial=init, jac=True,
-                         stacked=True, devices=devices)
+    return solve_designs(stack_designs(builds), theta, settings=settings, initial=init,
+                         jac=True if full_jac else sub_free, stacked=True, devices=devices)
 
 
 class _Peak(eqx.Module):
