@@ -127,7 +127,7 @@ def _built(build, theta):
 def jacobian_by_columns(f, z0: jax.Array, order: jax.Array | None = None,
                         count: jax.Array | None = None):
     """``jax.jacfwd(f, has_aux=True)(z0)`` computed as one ``jax.jvp`` per basis direction,
-    in sequence (``jax.lax.map``), instead of with the m tangents batched.
+    in sequence (a ``fori_loop``), instead of with the m tangents batched.
 
     ``f`` runs the lane engine (a ``while_loop`` of adaptive steps). Compiled for one
     device under the ``vmap`` over designs of :func:`_shoot`, that loop with a batch of
@@ -157,15 +157,12 @@ def jacobian_by_columns(f, z0: jax.Array, order: jax.Array | None = None,
     """
     m = z0.shape[0]
     eye = jnp.eye(m, dtype=z0.dtype)
+    if order is None:
+        order, count = jnp.arange(m), m
 
     def column(e):
         _, tangent, aux = jax.jvp(f, (z0,), (e,), has_aux=True)
         return tangent, aux
-
-    if order is None:
-        cols, aux = jax.lax.map(column, eye)
-        return (jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1), cols),
-                jax.tree_util.tree_map(lambda a: a[0], aux))
 
     shapes = jax.eval_shape(column, eye[0])
 
@@ -344,14 +341,14 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
         order = np.array(list(range(d)) + [d + i for i in free] + rest_cols)
         shot_build, shot_th = build, th
         columns = dict(order=jnp.asarray(order), count=jnp.asarray(d + len(free)), params=True)
-        at = list(free)  # where ``free``'s derivatives sit among the tangent's parameters
+        cols = [d + i for i in free]  # ``free``'s columns of the shot's Jacobians
     else:
         # jax.jacfwd computes every column of its tangent: only the parameters asked for
         sub = len(free) < n and bool(free)
         shot_build = Sub(build, jnp.asarray(th), free) if sub else build
         shot_th = th[:, list(free)] if sub else th
         columns = dict(params=bool(free))
-        at = list(range(len(free))) if sub else list(free)
+        cols = [d + i for i in (range(len(free)) if sub else free)]
     values = np.full((k, n_cells, len(METRICS)), np.nan)
     jacs = np.full((k, n_cells, len(METRICS), n), np.nan) if free else None
     final = jax.tree_util.tree_map(np.array, y)
@@ -392,7 +389,6 @@ def solve_designs(build: Callable, theta, *, settings: Steady = Steady(), initia
                 lambda a, b: np.where(converged.reshape(converged.shape + (1,) * (a.ndim - 2)),
                                       a, b), y, final)
             if free:
-                cols = [d + i for i in at]
                 a = j_out[converged][..., :d]
                 dy = solve_cells(np.eye(d) - a, j_out[converged][..., cols])
                 got = np.full(jacs[converged].shape, np.nan)

@@ -137,12 +137,12 @@ def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 6,
     theta = np.asarray(theta, float)
     k, n = theta.shape
     f = np.tile(np.linspace(band[0], band[1], grid), (k, 1))
-    sub_free = (n - 1,)
+    shift = (n - 1,)  # the bracketing levels' only derivative: dP/df
     state, coarse, final, level = initial, None, refine == 0, 0
     ready = np.zeros(k, bool)  # the final level spans a bracket narrow enough for fits
     seen_f, seen_p, seen_g, seen_y = [], [], [], []  # every level's samples
     while True:
-        r = _solve_grid(build, theta, f, state, settings, jac and final, sub_free, devices)
+        r = _solve_grid(build, theta, f, state, settings, jac and final, shift, devices)
         if level == 0:
             coarse = r.converged_states()
         p = np.where(r.status == 0, r.values[..., 0], -np.inf)
@@ -181,7 +181,7 @@ def peak_designs(build: Builder, theta, band, *, grid: int = 8, refine: int = 6,
                 metrics=metrics, levels=level + 1)
 
 
-def _solve_grid(build, theta, f, state, settings, full_jac, sub_free, devices=None):
+def _solve_grid(build, theta, f, state, settings, full_jac, shift, devices=None):
     """One level: the designs' cells at frequencies ``f`` (K, G), in one batched call, with
     the Jacobian over the shift (and every parameter if ``full_jac``)."""
     k = theta.shape[0]
@@ -190,7 +190,7 @@ def _solve_grid(build, theta, f, state, settings, full_jac, sub_free, devices=No
     # tracers, which the host-side solve cannot read
     init = None if state is None else jax.tree_util.tree_map(np.asarray, state)
     return solve_designs(stack_designs(builds), theta, settings=settings, initial=init,
-                         jac=True if full_jac else sub_free, stacked=True, devices=devices)
+                         jac=True if full_jac else shift, stacked=True, devices=devices)
 
 
 class _Peak(eqx.Module):
