@@ -228,7 +228,11 @@ def run_protocol(
         loadings = eqx.tree_at(lambda ld: ld.payload, loadings, narrow(loadings.payload))
         y0 = narrow_states(y0)
         initial = None if initial is None else narrow_states(initial)
-    term = SemilinearTerm(model.vector_field, model.linearisation)
+    # the vector field as one inner jit: a step evaluates it five times (and each pool and
+    # pass runs its own step), and JAX then traces and lowers it once per run instead of
+    # at every call; XLA inlines it, so the compiled step is the same (docs/performance.md)
+    field = eqx.filter_jit(lambda m, t, y, a: m.vector_field(t, y, a))
+    term = SemilinearTerm(lambda t, y, a: field(model, t, y, a), model.linearisation)
     # the transient's extrapolation (StepControl.extrapolate, a tolerance; "auto" is the
     # studies' to resolve, off here): runs with an early exit of the papers' and the
     # continuation protocol only (not the periodic protocol's settling, nor one-period shots)
