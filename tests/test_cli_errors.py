@@ -105,3 +105,39 @@ def test_plot_of_a_sweep_file_or_a_truncated_map(tmp_path, capsys):
     _fails(capsys, ["plot", str(cut), "--kind", "pmax", "--out", str(tmp_path / "p.png")],
            r"cut\.nc is not a readable power map")
     assert not (tmp_path / "p.png").exists()
+
+
+def test_a_file_jaxdea_did_not_write_is_never_replaced(tmp_path, capsys):
+    """``--out`` and ``--plot`` onto a user's file (data, a hand-written config, a figure made
+    elsewhere) are refused before any compute, and the file is untouched; the same command
+    may replace its own output (jaxdea's mark: :mod:`jaxdea.provenance`)."""
+    data, figure = tmp_path / "measured.nc", tmp_path / "figure.png"
+    data.write_bytes(b"precious")
+    figure.write_bytes(b"\x89PNG\r\n\x1a\nnot jaxdea's")
+    _fails(capsys, [*SWEEP, "--out", str(data)], r"--out .*measured\.nc exists and jaxdea did "
+                                                  r"not write it")
+    _fails(capsys, [*SWEEP, "--out", str(tmp_path / "s.nc"), "--plot", str(figure)],
+           r"--plot .*figure\.png exists and jaxdea did not write it")
+    config = tmp_path / "mine.toml"
+    config.write_text(Path(LS).read_text())
+    # calibrating a config in place would overwrite it: refused before the fit
+    _fails(capsys, ["calibrate", str(config), "--data", str(data), "--fit", "dielectric.mu_A",
+                    "--out", str(config)], r"--out .*mine\.toml exists and jaxdea did not")
+    _fails(capsys, ["optimise", str(config), "--vary", "spring_stiffness=300:700", "--mass",
+                    "2e-3", "--damping", "0.1", "--band", "40:120", "--out", str(config)],
+           r"--out .*mine\.toml exists and jaxdea did not")
+    assert data.read_bytes() == b"precious" and config.read_text() == Path(LS).read_text()
+    assert figure.read_bytes().endswith(b"not jaxdea's")
+
+
+def test_a_negative_value_after_its_option_gets_the_range_check(tmp_path, capsys):
+    """``--mass -1e-3`` (no ``=``): argparse would take ``-1e-3`` for an option and answer with
+    its usage; the value reaches the range check instead, and so do negative ranges."""
+    out = str(tmp_path / "s.nc")
+    base = ["sweep", LS, "--freq", "40:60:10", "--out", out]
+    _fails(capsys, [*base, "--mass", "-1e-3", "--damping", "0.1"],
+           r"mass must be >= 0 \(allowed range \[0, inf\)\)")
+    _fails(capsys, [*base, "--mass", "2e-3", "--damping", "-.5"], r"damping must be >= 0")
+    _fails(capsys, ["rotary-study", ROTARY, "--ri", "-2e-3:7e-3:3", "--d", "4e-3:18e-3:3",
+                    "--out", out], r"ri must be > 0 \(allowed range \(0, inf\)\)")
+    assert not Path(out).exists()

@@ -27,7 +27,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 #: below it; only the CLI stands above it.
 WINGS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("leaves", ("_checks", "solver", "materials", "membrane", "geometry", "electrical",
-                "signals", "payloads", "params")),
+                "signals", "payloads", "params", "provenance")),
     ("models", ("models",)),
     ("config", ("config",)),
     ("engine", ("engine",)),

@@ -43,7 +43,14 @@ def finite_array(name: str, value: Any, *, positive: bool = False,
                  nonnegative: bool = False, error: type[JaxdeaError] = SweepError) -> np.ndarray:
     """``value`` as a non-empty, finite float array (at least 1-D), optionally ``> 0`` or
     ``>= 0``; raises ``error`` naming ``name`` and the allowed range otherwise."""
-    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    try:  # numbers only: a string (even "1e-3") or a bool is not a value of `name`
+        raw = np.asarray(value)
+        ok = raw.dtype.kind in "iuf"
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise error(f"{name} must be a number or an array of numbers, got {value!r}")
+    arr = np.atleast_1d(raw.astype(float))
     if arr.size == 0:
         raise error(f"{name} is empty: give at least one value")
     if not np.all(np.isfinite(arr)):

@@ -8,6 +8,7 @@ import tomllib
 from pathlib import Path
 
 from .._checks import CalibrationError
+from ..provenance import MARK, check_replaceable_file, toml_mark
 
 __all__ = ["config_keys", "fitted_config_text", "write_fitted_config"]
 
@@ -117,7 +118,10 @@ def write_fitted_config(config_path, out_path, params: dict[str, float], header:
     ``out_path`` as a :class:`~pathlib.Path`.
     """
     config_path, out_path = Path(config_path), Path(out_path)
-    text = config_path.read_text()
+    check_replaceable_file(out_path, "out_path", CalibrationError)
+    # jaxdea's mark first (jaxdea.provenance), not twice when the start was jaxdea's too
+    text = "".join(line for line in config_path.read_text().splitlines(keepends=True)
+                   if not line.startswith(f"# {MARK}"))
     cfg = tomllib.loads(text)
     keys = config_keys(cfg, list(params))
     new = fitted_config_text(text, {keys[n]: v for n, v in params.items()}, header)
@@ -129,5 +133,5 @@ def write_fitted_config(config_path, out_path, params: dict[str, float], header:
         if float(v) != float(params[n]):  # pragma: no cover - guarded by the text edit
             raise CalibrationError(f"writing {'.'.join(k)} failed: read back {v}")
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(new)
+    out_path.write_text(toml_mark() + new)
     return out_path

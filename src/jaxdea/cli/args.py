@@ -17,6 +17,7 @@ from jaxdea.engine.step_control import (
     SOLVERS,
     StepControl,
 )
+from jaxdea.provenance import check_replaceable_file, jaxdea_version
 
 #: The most points one command-line range may hold: a guard against a typo (``1:100:1e-9``)
 #: that would allocate terabytes before any check; a larger grid is several runs.
@@ -137,6 +138,7 @@ def write_dataset(ds, out: Path) -> None:
     leaves a truncated file under the final name."""
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".part")
+    ds = ds.assign_attrs(jaxdea_version=jaxdea_version())  # jaxdea's mark: it may replace it
     ds.to_netcdf(tmp, engine="h5netcdf")
     os.replace(tmp, out)
 
@@ -145,9 +147,12 @@ def check_writable(path: Path, name: str, directory_ok: bool = False) -> Path:
     """``path`` can be written, checked before any compute: it is not a directory (unless
     ``directory_ok``: a store that the writer replaces or resumes), and its nearest existing
     ancestor is a writable directory (missing folders are created when it is written).
-    Raises ``ValueError`` naming the option otherwise."""
+    An existing file there must be one jaxdea wrote (:mod:`jaxdea.provenance`): a command
+    replaces its own output, never a user's file. Raises ``ValueError`` naming the option
+    otherwise."""
     if path.is_dir() and not directory_ok:
         raise ValueError(f"{name} {path} is a directory: give a file name")
+    check_replaceable_file(path, name)
     parent = path.parent
     while not parent.exists():
         parent = parent.parent

@@ -7,7 +7,7 @@ import functools
 import math
 from pathlib import Path
 
-from .args import check_png
+from .args import check_png, check_writable
 from .payload import add_payload_args, cli_payload
 
 
@@ -48,6 +48,7 @@ def _calibrate(args) -> int:
     out = Path(args.out)
     if out.suffix != ".toml":
         raise ValueError(f"--out must end in .toml, got {out}")
+    check_writable(out, "--out")  # before the fit: not a folder, not a user's file
     check_png(args.plot)
     if args.maxiter is not None and args.maxiter < 1:
         raise ValueError(f"--maxiter = {args.maxiter} is outside the allowed range [1, inf)")

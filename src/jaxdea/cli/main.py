@@ -4,6 +4,7 @@ optimise|reproduce ...`` (see ``jaxdea COMMAND --help``)."""
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import warnings
 
@@ -28,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``) and return the exit code: 0 on
     success, 2 with one line on stderr for a user error (bad argument, config, data or path),
     130 when interrupted."""
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_negative_values(sys.argv[1:] if argv is None else argv))
     from jaxdea._checks import JaxdeaError
     from jaxdea.engine.sharding import use_compile_cache, use_cpu_cores
 
@@ -46,6 +47,24 @@ def main(argv: list[str] | None = None) -> int:
     except (JaxdeaError, ValueError, NotImplementedError, OSError) as exc:
         print(f"jaxdea: error: {exc}", file=sys.stderr)
         return 2
+
+
+#: A value that starts with a minus sign: ``-1e-3``, ``-.5``, ``-2e-3:1e-3:5``, ``-inf``.
+_NEGATIVE = re.compile(r"-(\d|\.\d|inf|nan)", re.IGNORECASE)
+
+
+def _negative_values(argv: list[str]) -> list[str]:
+    """``--mass -1e-3`` as ``--mass=-1e-3``: argparse takes a token that starts with ``-`` and
+    is not a plain decimal (``-1e-3``, a range ``-1:1:5``) for an option, and would answer with
+    its usage instead of the range check's one line."""
+    out: list[str] = []
+    for tok in argv:
+        prev = out[-1] if out else ""
+        if _NEGATIVE.match(tok) and prev.startswith("--") and "=" not in prev:
+            out[-1] = f"{prev}={tok}"
+        else:
+            out.append(tok)
+    return out
 
 
 def _one_line(show):

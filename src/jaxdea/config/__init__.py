@@ -11,13 +11,14 @@ line here.
 
 from __future__ import annotations
 
+import os
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from .._checks import ConfigError
-from .cones import ACTUATOR_CLASSES, cone_from_config
+from .cones import ACTUATOR_CLASSES, cone_from_config, parameter_range
 from .fields import POS, Field
 from .payload import payload_from_config
 from .rotary import rotary_from_config
@@ -35,7 +36,7 @@ LOADERS: dict[str, Callable[[dict[str, Any]], Any]] = {
 }
 
 __all__ = ["LOADERS", "POS", "ConfigError", "Field", "load_config", "load_payload",
-           "model_from_dict", "payload_from_config"]
+           "model_from_dict", "parameter_range", "payload_from_config"]
 
 
 def model_from_dict(cfg: dict[str, Any]) -> Any:
@@ -98,6 +99,8 @@ def load_payload(path: str | Path):
 
 
 def _read_toml(path: str | Path) -> tuple[Path, dict]:
+    if not isinstance(path, (str, os.PathLike)):
+        raise ConfigError(f"a config is a path to a .toml file, got {path!r}")
     path = Path(path)
     try:
         with path.open("rb") as fh:

@@ -64,6 +64,20 @@ DRIVE_FIELDS = {
     # optional (default BREAKDOWN_FIELD): the film's dielectric breakdown field, checked only
     "breakdown_field": Field(0.0, math.inf, lo_open=True, unit="V/m"),
 }
+def parameter_range(model: Model, path: str) -> Field | None:
+    """The config's allowed range of the cone parameter at ``path`` (a full path of
+    :func:`jaxdea.parameter_names`, an element index ``[i]`` ignored), or None."""
+    path = path.split("[")[0]
+    head, _, key = path.rpartition(".")
+    if head in ("actuator.membrane.dielectric", "actuator.membrane.electrode"):
+        return MATERIAL_FIELDS.get(key)
+    if head == "actuator.membrane":
+        return MEMBRANE_FIELDS.get(key)
+    if head == "actuator":
+        return ACTUATOR_FIELDS.get(model.actuator.name, {}).get(key)
+    return DRIVE_FIELDS.get(key) if not head else None
+
+
 ACTUATOR_CLASSES: dict[str, type[ConeActuator]] = {
     "scdea_ls": SCDEA_LS,
     "dcdea_rr": DCDEA_RR,

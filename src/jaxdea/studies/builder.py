@@ -9,7 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import CalibrationError, SweepError, finite_array
+from .._checks import CalibrationError, ConfigError, SweepError, finite_array
+from ..config.cones import parameter_range
+from ..config.fields import Field
 from ..models.cone import Model
 from ..params import make_params, resolve_names, with_theta
 from ..payloads import PayloadLaw, parameters, replace_parameters
@@ -101,6 +103,34 @@ def resolve(model: Model, names, payload: PayloadLaw | None = None) -> dict[str,
         raise SweepError(str(e).replace(" in fit", " in vary")) from None
     to_full = dict(zip(rest, full))
     return {n: to_full.get(n, n) for n in names}
+
+
+#: The allowed ranges of the payload's and the drive's names (as the sweeps check them).
+PAYLOAD_RANGES = {"mass": Field(0.0, np.inf, unit="kg"),
+                  "damping": Field(0.0, np.inf, unit="N s/m"),
+                  "freq": Field(0.0, np.inf, lo_open=True, unit="Hz")}
+
+
+def check_values(model: Model, mapping: dict, values: dict, what: str = "") -> None:
+    """Every concrete value of ``values`` (``{given name: scalar or array}``; ``mapping`` from
+    :func:`resolve`) inside its parameter's allowed range (the config's, or
+    :data:`PAYLOAD_RANGES`), checked before any compute: a design with a negative spring or
+    a prestretch below 1 is refused, not solved. Traced values (under ``jax.grad``) pass.
+    ``what``: how the message names a value, ``"vary"`` gives ``vary['name']``."""
+    for given, value in values.items():
+        if isinstance(value, jax.core.Tracer):
+            continue
+        full = mapping[given]
+        field = PAYLOAD_RANGES.get(full) if _is_payload(full) else parameter_range(model, full)
+        label = f"{what}[{given!r}]" if what else given
+        arr = finite_array(label, value)
+        if field is None:
+            continue
+        for v in arr.ravel():
+            try:
+                field.check(label, float(v))
+            except ConfigError as e:
+                raise SweepError(str(e)) from None
 
 
 def split_names(mapping: dict) -> tuple[list[str], list[str], list[str]]:

@@ -34,7 +34,7 @@ from ..engine.implicit import implicit
 from ..engine.sensitivity import METRICS, Steady, solve_designs, stack_designs
 from ..engine.step_control import StepControl
 from ..models.cone import Model
-from .builder import Builder, make_builder, resolve, split_names, theta_of
+from .builder import Builder, check_values, make_builder, resolve, split_names, theta_of
 from .loadings import check_cone_model
 from .peak_search import bracket_ready, next_frequencies, stationary_point
 
@@ -81,7 +81,9 @@ def steady_objectives(model: Model, values: dict | None = None, *, mass=None, da
     shape of ``freq`` (NaN where status != 0).
     """
     values = dict(values or {})
-    keys, full, pay = split_names(resolve(model, list(values), payload))
+    mapping = resolve(model, list(values), payload)
+    check_values(model, mapping, values)
+    keys, full, pay = split_names(mapping)
     if "freq" in pay:
         if freq is not None:
             raise SweepError("freq is given twice: in values and as freq=; drop one")
@@ -248,7 +250,9 @@ def peak_power(model: Model, values: dict | None = None, *, mass=None, damping=N
     ``{"P_max" (W), "f_at_P_max" (Hz; zero derivative), "status"}``.
     """
     values = dict(values or {})
-    keys, full, pay = split_names(resolve(model, list(values), payload))
+    mapping = resolve(model, list(values), payload)
+    check_values(model, mapping, values)
+    keys, full, pay = split_names(mapping)
     if "freq" in pay:
         raise SweepError("freq cannot be varied in peak_power: the band fixes it")
     lo, hi = check_band(band)
@@ -331,6 +335,7 @@ def design_map(model: Model, values: dict, *, mass=None, damping=None, payload=N
         if a.ndim != 1 or a.size < 1:
             raise SweepError(f"values[{k!r}] must be a 1-D array of at least one value")
     mapping = resolve(model, list(arrays), payload)
+    check_values(model, mapping, arrays)
     if "freq" in mapping.values():
         raise SweepError("freq cannot be a design axis: the band fixes it")
     lo, hi = check_band(band)
@@ -358,9 +363,10 @@ def design_map(model: Model, values: dict, *, mass=None, damping=None, payload=N
             out["P_max"][sl], out["f"][sl], out["status"][sl] = r["P_max"], r["f"], r["status"]
             for i, m in enumerate(METRICS):
                 out[m][sl] = r["metrics"][:, i]
-            n_model = len(full)
+            n_model = len(full)  # none: only payload axes vary, one field for all
             out["field"][sl] = [float(nominal_field(set_params(model, dict(zip(
-                keys[:n_model], map(float, t[:n_model])))))) for t in th]
+                keys[:n_model], map(float, t[:n_model])))) if n_model else model))
+                for t in th]
             bar.update(len(th))
     dims = tuple(names)
     var = lambda k: (dims, out[k].reshape(shape))  # noqa: E731

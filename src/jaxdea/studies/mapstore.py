@@ -21,7 +21,6 @@ import json
 import os
 import shutil
 import warnings
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -29,16 +28,12 @@ import numpy as np
 import xarray as xr
 
 from .._checks import SweepError
+from ..provenance import written_by_jaxdea
 
 SUFFIXES = (".zarr", ".nc")
 MANIFEST = "manifest.json"
 
 
-def jaxdea_version() -> str:
-    try:
-        return metadata.version("jaxdea")
-    except metadata.PackageNotFoundError:  # pragma: no cover - source tree without install
-        return "unknown"
 
 
 def check_store_path(store: str | os.PathLike) -> Path:
@@ -51,18 +46,7 @@ def check_store_path(store: str | os.PathLike) -> Path:
 
 def is_jaxdea_store(path: Path) -> bool:
     """Whether ``path`` holds a power map that jaxdea wrote (its attrs name a jaxdea version)."""
-    try:
-        if path.suffix == ".nc":
-            if not path.is_file():
-                return False
-            with xr.open_dataset(path, engine="h5netcdf") as ds:
-                return "jaxdea_version" in ds.attrs
-        if not path.is_dir():
-            return False
-        with xr.open_zarr(path, consolidated=False) as ds:
-            return "jaxdea_version" in ds.attrs
-    except Exception:  # noqa: BLE001 - anything unreadable is not ours
-        return False
+    return path.suffix in SUFFIXES and written_by_jaxdea(path)
 
 
 def check_replaceable(store: Path) -> None:

@@ -25,7 +25,8 @@ from ..config.cones import ACTUATOR_FIELDS, DRIVE_FIELDS, MATERIAL_FIELDS, MEMBR
 from ..engine.sensitivity import Steady, solve_designs
 from ..models.cone import Model
 from ..params import get_params, set_params
-from .builder import LAW, law_value, make_builder, resolve, split_names
+from ..provenance import check_replaceable_file, toml_mark
+from .builder import LAW, check_values, law_value, make_builder, resolve, split_names
 from .design import DESIGN_STEADY, check_band, peak_designs
 from .loadings import check_cone_model, nominal_field
 
@@ -89,13 +90,15 @@ def write_cone_toml(model: Model, path, header: str = "") -> Path:
     act, mem = model.actuator, model.actuator.membrane
     fmt = lambda obj, names: "".join(  # noqa: E731
         f"{k} = {float(getattr(obj, k))!r}\n" for k in names)
-    text = (f"# {header}\n" if header else "") + f'model = "{act.name}"\n\n[membrane]\n'
+    text = toml_mark() + (f"# {header}\n" if header else "")  # jaxdea.provenance
+    text += f'model = "{act.name}"\n\n[membrane]\n'
     text += fmt(mem, MEMBRANE_FIELDS)
     for part in ("dielectric", "electrode"):
         text += f"\n[membrane.{part}]\n" + fmt(getattr(mem, part), MATERIAL_FIELDS)
     text += "\n[drive]\n" + fmt(model, DRIVE_FIELDS)
     text += "\n[actuator]\n" + fmt(act, ACTUATOR_FIELDS[act.name])
     path = Path(path)
+    check_replaceable_file(path, "path", SweepError)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     return path
@@ -120,6 +123,7 @@ def _check_inputs(model, vary, objective, band, freq, starts, max_field, x0, pay
         if not lo < hi:
             raise SweepError(f"vary[{k!r}] = ({lo:g}, {hi:g}): lower must be < upper")
         bounds[k] = (lo, hi)
+    check_values(model, mapping, bounds, "vary")  # both bounds inside the parameter's range
     if not (isinstance(objective, str) and objective in OBJECTIVES) and not callable(objective):
         raise SweepError(f"objective = {objective!r} must be one of {', '.join(OBJECTIVES)} "
                          "or a callable of the steady_objectives dict")

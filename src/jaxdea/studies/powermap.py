@@ -59,6 +59,7 @@ from ..engine.step_control import (
 )
 from ..models.cone import Model
 from ..payloads import parameters
+from ..provenance import jaxdea_version
 from .distributed import (
     ChunkJob,
     check_client,
@@ -85,7 +86,6 @@ from .mapstore import (
     StoreLock,
     check_replaceable,
     check_store_path,
-    jaxdea_version,
     previous_chunk_cells,
     write_store,
 )
@@ -330,6 +330,11 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
         check_replaceable(store)  # never write over a file or folder jaxdea did not write
     if resume and store is None:
         raise SweepError("resume=True needs a store (the path of the interrupted run's output)")
+    if resume and store.exists() and not store.with_name(store.name + ".parts").exists():
+        # a finished map: nothing was interrupted, and recomputing would replace it unasked
+        raise SweepError(f"nothing to resume: {store} is a finished map (no {store.name}.parts "
+                         "of an interrupted run beside it); run without --resume "
+                         "(resume=False) to recompute and replace it, or choose another path")
     shape = tuple(a.size for a in axes.values())
     _check_size(shape, tuple(axes), store)
     warn_breakdown(model)

@@ -16,6 +16,7 @@ import numpy as np
 import xarray as xr
 from jaxtyping import Array, ArrayLike
 
+from .._checks import SweepError, finite_array
 from ..models.rotary import (
     ELEMENTS,
     INVALID,
@@ -181,12 +182,14 @@ def rotary_study(model: RotaryDCDEA, ri: ArrayLike, d: ArrayLike, *, client=None
     ``status`` (codes in ``attrs['status_codes']``), ``voltage`` (V), ``rest_stretch``,
     ``min_stiffness_eig`` (N m).
     """
-    ri = np.atleast_1d(np.asarray(ri, dtype=np.float64))
-    d = np.atleast_1d(np.asarray(d, dtype=np.float64))
+    # lengths: finite and > 0 (a grid may still reach past the geometry's limits, r_i >= r_o
+    # for instance: those points get status 3, the others are solved)
+    ri = finite_array("ri", ri, positive=True)
+    d = finite_array("d", d, positive=True)
     if ri.ndim != 1 or d.ndim != 1:
-        raise ValueError("ri and d must be 1-D arrays of metres")
+        raise SweepError("ri and d must be 1-D arrays of metres")
     if chunk is not None and (isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1):
-        raise ValueError(f"chunk must be an integer >= 1 (cells per task), got {chunk!r}")
+        raise SweepError(f"chunk must be an integer >= 1 (cells per task), got {chunk!r}")
     RI, D = np.meshgrid(ri, d, indexing="ij")
     if client is None:
         theta, status, volt, lam0, eig = _study_kernel(model, jnp.asarray(RI.ravel()),
