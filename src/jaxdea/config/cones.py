@@ -64,6 +64,8 @@ DRIVE_FIELDS = {
     # optional (default BREAKDOWN_FIELD): the film's dielectric breakdown field, checked only
     "breakdown_field": Field(0.0, math.inf, lo_open=True, unit="V/m"),
 }
+
+
 def parameter_range(model: Model, path: str) -> Field | None:
     """The config's allowed range of the cone parameter at ``path`` (a full path of
     :func:`jaxdea.parameter_names`, an element index ``[i]`` ignored), or None."""
