@@ -403,7 +403,9 @@ def test_fitted_config_round_trips(tmp_path):
     assert float(m.actuator.membrane.electrode.tau) == 1.5e-3
     assert float(m.actuator.spring_stiffness) == 610.5
     text = out.read_text()
-    assert text.startswith("# a test") and "# s, eta = mu_B * tau: chosen (fitted)" in text
+    first, second = text.splitlines()[:2]  # jaxdea's mark (jaxdea.provenance), then the header
+    assert first.startswith("# written by jaxdea") and second == "# a test"
+    assert "# s, eta = mu_B * tau: chosen (fitted)" in text
 
 
 def test_cli_calibrate_writes_loadable_config_and_plot(tmp_path, capsys):
