@@ -122,3 +122,17 @@ def test_resume_does_not_replace_a_finished_map(model, tmp_path):
         jaxdea.powermap(model, mass=[1e-3], damping=[0.1], freq=[60.0], store=store,
                         resume=True, progress=False)
     assert written_by_jaxdea(store)
+
+
+def test_a_model_edited_in_code_is_checked_as_a_config_would_be(model):
+    """A model whose parameter was set out of its config range in code (``set_params``) is
+    refused by the sweep and the map before any compute, naming the parameter."""
+    bad = jaxdea.params.set_params(model, {"actuator.spring_stiffness": -500.0})
+    match = r"actuator\.spring_stiffness = -500\.0 is outside the allowed range \[0, inf\) N/m"
+    with pytest.raises(jaxdea.ConfigError, match=match):
+        jaxdea.sweep(bad, mass=2e-3, damping=0.1, freq=[60.0])
+    with pytest.raises(jaxdea.ConfigError, match=match):
+        jaxdea.powermap(bad, mass=[2e-3], damping=[0.1], freq=[60.0], progress=False)
+    thin = jaxdea.params.set_params(model, {"membrane.prestretch": 12.0})
+    with pytest.raises(jaxdea.ConfigError, match=r"prestretch = 12\.0 is outside .*\[1, 10\]"):
+        jaxdea.sweep(thin, mass=2e-3, damping=0.1, freq=[60.0])

@@ -13,7 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import ConfigError, FieldWarning, SweepError, check_choice, finite_array
+from ..config.cones import parameter_range
 from ..models.cone import Loading, Model
+from ..params import parameter_names
 from ..payloads import (
     Combined,
     Drag,
@@ -50,6 +52,19 @@ def nominal_field(model: Model) -> jax.Array:
     at the zero-voltage static equilibrium, V/m; differentiable), compiled once per model
     structure: run eagerly, its Newton solve of the rest state costs ~0.4 s of dispatch."""
     return model.nominal_field()
+
+
+def check_model_ranges(model: Model) -> None:
+    """Every parameter of the cone ``model`` inside its config range: a model edited in code
+    (:func:`jaxdea.params.set_params`, ``eqx.tree_at``) is refused as a config with that value
+    would be (:class:`~jaxdea.ConfigError` naming the parameter), before any compute. Nothing
+    is checked while the model is traced."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(model)):
+        return
+    for name, value in parameter_names(model).items():
+        field = parameter_range(model, name)
+        if field is not None:
+            field.check(name, value)
 
 
 def warn_breakdown(model: Model, stacklevel: int = 3) -> None:

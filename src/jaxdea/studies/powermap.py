@@ -75,6 +75,7 @@ from .loadings import (
     anchor_payload,
     cell_payload,
     check_cone_model,
+    check_model_ranges,
     check_payload,
     check_rest,
     drive_pattern,
@@ -337,6 +338,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
                          "(resume=False) to recompute and replace it, or choose another path")
     shape = tuple(a.size for a in axes.values())
     _check_size(shape, tuple(axes), store)
+    check_model_ranges(model)  # a model edited in code, as a config would be
     warn_breakdown(model)
     if payload is not None:  # the rest state of every (M, law value) exists
         payload = anchor_payload(model, payload)

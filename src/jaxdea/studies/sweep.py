@@ -23,7 +23,14 @@ from ..engine.step_control import (
 )
 from ..models.cone import Model
 from ..payloads import PARAMETER_UNITS
-from .loadings import check_payload, make_loadings, payload_parameters, warn_breakdown
+from .loadings import (
+    check_cone_model,
+    check_model_ranges,
+    check_payload,
+    make_loadings,
+    payload_parameters,
+    warn_breakdown,
+)
 
 #: Units and descriptions of the per-cell outputs.
 VARIABLES = {
@@ -115,6 +122,8 @@ def sweep(model: Model, *, mass: float | None = None, damping: float | None = No
     for name, v in (("mass", mass), ("damping", damping)):
         if v is not None and np.ndim(v) != 0:
             raise SweepError(f"{name} must be a scalar for a sweep (use powermap for grids)")
+    check_cone_model(model)
+    check_model_ranges(model)  # a model edited in code, as a config would be
     mass_arr, _, payload = check_payload(mass, damping, payload)
     loadings = make_loadings(model, mass_arr[0], damping, freq, drive, phase, payload)
     warn_breakdown(model)
