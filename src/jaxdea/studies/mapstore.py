@@ -34,6 +34,10 @@ SUFFIXES = (".zarr", ".nc")
 MANIFEST = "manifest.json"
 
 
+def parts_dir(store: Path) -> Path:
+    """``<store>.parts``: the folder of a run's finished chunks (:class:`Parts`), beside
+    ``store`` while the run is unfinished."""
+    return store.with_name(store.name + ".parts")
 
 
 def check_store_path(store: str | os.PathLike) -> Path:
@@ -131,7 +135,7 @@ def previous_chunk_cells(store: Path) -> int | None:
     that a resumed run keeps the interrupted run's chunks whatever its device or worker
     count."""
     try:
-        old = json.loads((store.with_name(store.name + ".parts") / MANIFEST).read_text())
+        old = json.loads((parts_dir(store) / MANIFEST).read_text())
         return int(old["settings"]["chunk_cells"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
@@ -156,7 +160,7 @@ class Parts:
     """The ``<store>.parts`` folder of one run: manifest plus one ``.npz`` per finished chunk."""
 
     def __init__(self, store: Path, settings: dict[str, Any], n_chunks: int):
-        self.dir = store.with_name(store.name + ".parts")
+        self.dir = parts_dir(store)
         self.settings = settings
         self.hash = settings_hash(settings)
         self.n_chunks = n_chunks

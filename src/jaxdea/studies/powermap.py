@@ -87,6 +87,7 @@ from .mapstore import (
     StoreLock,
     check_replaceable,
     check_store_path,
+    parts_dir,
     previous_chunk_cells,
     write_store,
 )
@@ -331,7 +332,7 @@ def powermap(model: Model, *, mass, damping=None, freq, payload=None, phase=None
         check_replaceable(store)  # never write over a file or folder jaxdea did not write
     if resume and store is None:
         raise SweepError("resume=True needs a store (the path of the interrupted run's output)")
-    if resume and store.exists() and not store.with_name(store.name + ".parts").exists():
+    if resume and store.exists() and not parts_dir(store).exists():
         # a finished map: nothing was interrupted, and recomputing would replace it unasked
         raise SweepError(f"nothing to resume: {store} is a finished map (no {store.name}.parts "
                          "of an interrupted run beside it); run without --resume "
