@@ -13,7 +13,7 @@ import xarray as xr  # noqa: E402
 
 from .calibration import CalibrationResult, Data, FrequencyResponse  # noqa: E402
 from .payloads import PARAMETER_UNITS  # noqa: E402
-from .provenance import png_metadata  # noqa: E402
+from .provenance import figure_metadata  # noqa: E402
 from .studies.optimise import OptimiseResult  # noqa: E402
 
 
@@ -101,8 +101,7 @@ def _mc_mesh(ax, x, y, z, label, fig, *, norm=None, cmap="viridis", contours=Tru
 def _save(fig, path, dpi: int = 130):
     fig.tight_layout()
     if path is not None:  # a PNG carries jaxdea's mark (jaxdea.provenance)
-        fig.savefig(path, dpi=dpi,
-                    metadata=png_metadata() if str(path).endswith(".png") else None)
+        fig.savefig(path, dpi=dpi, metadata=figure_metadata(path))
         plt.close(fig)
     return fig
 

@@ -37,9 +37,10 @@ def toml_mark() -> str:
     return f"# {MARK} {jaxdea_version()}\n"
 
 
-def png_metadata() -> dict[str, str]:
-    """``savefig(..., metadata=...)`` of a PNG jaxdea writes."""
-    return {"Software": f"jaxdea {jaxdea_version()}"}
+def figure_metadata(path) -> dict[str, str] | None:
+    """``savefig(path, metadata=...)`` of a figure jaxdea writes: the mark for a PNG, None
+    (matplotlib's default) for other formats, which have no such text chunk."""
+    return {"Software": f"jaxdea {jaxdea_version()}"} if str(path).endswith(".png") else None
 
 
 def _png_software(path: Path) -> str:

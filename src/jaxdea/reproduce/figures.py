@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
-from ..provenance import png_metadata  # noqa: E402
+from ..provenance import figure_metadata  # noqa: E402
 
 __all__ = ["fig6", "fig7", "fig9", "fig10", "fig11", "tradeoff"]
 
@@ -55,7 +55,7 @@ def _mesh(ax, x, y, z, label, fig, log=False, cmap="viridis"):
 def _save(fig, path):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, metadata=png_metadata() if path.suffix == ".png" else None)
+    fig.savefig(path, dpi=120, metadata=figure_metadata(path))
     plt.close(fig)
     return path
 

@@ -363,10 +363,12 @@ def design_map(model: Model, values: dict, *, mass=None, damping=None, payload=N
             out["P_max"][sl], out["f"][sl], out["status"][sl] = r["P_max"], r["f"], r["status"]
             for i, m in enumerate(METRICS):
                 out[m][sl] = r["metrics"][:, i]
-            n_model = len(full)  # none: only payload axes vary, one field for all
-            out["field"][sl] = [float(nominal_field(set_params(model, dict(zip(
-                keys[:n_model], map(float, t[:n_model])))) if n_model else model))
-                for t in th]
+            n_model = len(full)
+            if n_model:
+                out["field"][sl] = [float(nominal_field(set_params(model, dict(zip(
+                    keys[:n_model], map(float, t[:n_model])))))) for t in th]
+            else:  # only payload axes vary: the model's own field for every design
+                out["field"][sl] = float(nominal_field(model))
             bar.update(len(th))
     dims = tuple(names)
     var = lambda k: (dims, out[k].reshape(shape))  # noqa: E731
