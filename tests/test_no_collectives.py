@@ -8,16 +8,22 @@ when one device's thread is that late, as happens on a busy core. This test runs
 a periodic sweep, paper and continuation power maps and a design solve (implicit
 gradients, :func:`jaxdea.engine.sensitivity.solve_designs`) on 2 CPU devices in a subprocess that
 dumps every optimized HLO module, and checks that none of them contains a collective.
+The subprocess has the CLI's XLA flags, loop hoisting included (the suite runs without it:
+``conftest.py``), so it also checks that the hoisted programs compile, really are hoisted,
+and give this process's paper sweep.
 """
 
 from __future__ import annotations
 
+import ast
 import os
 import re
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).parents[1]
 CONFIG = str(ROOT / "configs" / "dcdea_ls.toml")
@@ -41,6 +47,7 @@ SCRIPT = textwrap.dedent(f"""
         ds = jaxdea.sweep(model, mass=2e-3, damping=0.1, freq=freq, protocol=protocol,
                           **short)
         print(protocol, "sweep: most cycles", int(ds["cycles_run"].max()))
+        print(protocol, "sweep: P_out", repr(ds["P_out"].values.ravel().tolist()))
     for protocol in ("paper", "continuation"):
         ds = jaxdea.powermap(model, mass=[1e-3, 2e-3], damping=[0.1], freq=freq,
                              protocol=protocol, progress=False, **short)
@@ -58,11 +65,15 @@ SCRIPT = textwrap.dedent(f"""
 
 
 def test_sharded_runs_compile_no_collective(tmp_path):
+    from jaxdea.engine import sharding
+
     dump = tmp_path / "hlo"
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    hoist = sharding._with_extra_option("", sharding.SMALL_WHILE_LOOP_OPTION,
+                                        sharding.SMALL_WHILE_LOOP_BYTES)
     env.update(PYTHONPATH=SRC + os.pathsep + env.get("PYTHONPATH", ""),
                XLA_FLAGS=("--xla_force_host_platform_device_count=2 "
-                          "--xla_cpu_multi_thread_eigen=false "
+                          f"--xla_cpu_multi_thread_eigen=false {hoist} "
                           f"--xla_dump_to={dump} --xla_dump_hlo_as_text"))
     res = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True,
                          env=env, timeout=600)
@@ -73,6 +84,14 @@ def test_sharded_runs_compile_no_collective(tmp_path):
     modules = sorted(dump.glob("*after_optimizations.txt"))
     texts = {p.name: p.read_text() for p in modules}
     assert any("num_partitions=2" in t for t in texts.values()), "nothing ran on 2 devices"
+    assert any("xla_cpu_small_call" in t for t in texts.values()), "no loop was hoisted"
+    # the hoisted two-device sweep gives this (unhoisted, one-device) process's numbers
+    import jaxdea
+
+    here = jaxdea.sweep(jaxdea.load_config(CONFIG), mass=2e-3, damping=0.1,
+                        freq=[40.0, 70.0, 100.0], protocol="paper", cycles=6, average=2)
+    there = ast.literal_eval(re.search(r"paper sweep: P_out (\[.*\])", res.stdout)[1])
+    np.testing.assert_allclose(there, here["P_out"].values.ravel(), rtol=1e-9, atol=0)
     found = {name: sorted(set(COLLECTIVE.findall(t))) for name, t in texts.items()}
     found = {name: ops for name, ops in found.items() if ops}
     assert not found, f"collectives in compiled modules: {found}"
@@ -87,20 +106,32 @@ def test_sharded_runs_compile_no_collective(tmp_path):
 
 def test_cpu_flags_ask_for_wide_vectors_only_where_the_cpu_has_them(monkeypatch):
     """``cpu_flags`` adds 512-bit vectors on an AVX-512 CPU, nothing on another one, and
-    never overrides a width the user set."""
+    never overrides a width the user set; it lets XLA hoist the engine's while loops into
+    single kernels, next to the user's own backend extra options and never over their
+    threshold; and with an older jaxlib (not measured) it adds neither."""
     from jaxdea.engine import sharding
 
+    eigen = "--xla_cpu_multi_thread_eigen=false"
+    hoist = "xla_cpu_small_while_loop_byte_threshold=1000000000"
     for avx512, given, want in [
-            (True, "", "--xla_cpu_multi_thread_eigen=false --xla_cpu_prefer_vector_width=512"),
-            (False, "", "--xla_cpu_multi_thread_eigen=false"),
+            (True, "", f"{eigen} --xla_backend_extra_options={hoist} "
+                       "--xla_cpu_prefer_vector_width=512"),
+            (False, "", f"{eigen} --xla_backend_extra_options={hoist}"),
             (True, "--xla_cpu_prefer_vector_width=256",
-             "--xla_cpu_prefer_vector_width=256 --xla_cpu_multi_thread_eigen=false")]:
+             f"--xla_cpu_prefer_vector_width=256 {eigen} --xla_backend_extra_options={hoist}"),
+            (False, "--xla_backend_extra_options=xla_cpu_use_acl=true",
+             f"--xla_backend_extra_options=xla_cpu_use_acl=true,{hoist} {eigen}"),
+            (False, "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0",
+             f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0 {eigen}")]:
         monkeypatch.setenv("XLA_FLAGS", given)
         monkeypatch.setattr(sharding, "host_has_avx512", lambda avx512=avx512: avx512)
         monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 10))
         sharding.cpu_flags()
         assert os.environ["XLA_FLAGS"] == want
     monkeypatch.setenv("XLA_FLAGS", "")
-    monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 9))  # flag not measured there
+    sharding.cpu_flags(hoist_loops=False)  # the test suite's flags
+    assert os.environ["XLA_FLAGS"] == eigen
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 9))  # flags not measured there
     sharding.cpu_flags()
-    assert "vector_width" not in os.environ["XLA_FLAGS"]
+    assert os.environ["XLA_FLAGS"] == eigen

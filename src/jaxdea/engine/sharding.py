@@ -149,26 +149,66 @@ def _jaxlib_version() -> tuple[int, int]:
         return (0, 0)
 
 
-def cpu_flags() -> None:
+#: XLA's CPU backend runs a while loop whose HLO cost analysis reads fewer bytes than this
+#: as one compiled kernel (its ``SmallWhileLoopHoistingPass``, set by a backend extra
+#: option; measured with jaxlib 0.10); below it (XLA's default is ~1 kB, which no engine
+#: loop is) a loop runs one runtime call (thunk) per fused kernel per step (~160 a
+#: lane-step). 1e9 lets every loop of the engine through (a loop with a host callback or a
+#: collective never is: XLA checks). Measured: ``bench/NOTES.md``.
+SMALL_WHILE_LOOP_BYTES = 1_000_000_000
+#: The backend extra option that sets it (:data:`SMALL_WHILE_LOOP_BYTES`).
+SMALL_WHILE_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
+
+
+def _with_extra_option(flags: str, key: str, value) -> str:
+    """``flags`` (an ``XLA_FLAGS`` string) with ``key=value`` among its
+    ``--xla_backend_extra_options`` (appended to the user's own ones, or as a new flag);
+    unchanged where ``key`` is there already."""
+    if key in flags:
+        return flags
+    words = flags.split()
+    for i, word in enumerate(words):
+        if word.startswith("--xla_backend_extra_options="):
+            words[i] = f"{word},{key}={value}"
+            return " ".join(words)
+    return (flags + f" --xla_backend_extra_options={key}={value}").strip()
+
+
+def cpu_flags(hoist_loops: bool = True) -> None:
     """Add the lane engine's XLA CPU flags to ``XLA_FLAGS``, each unless it is set already
     (XLA reads them when the backend starts, so call this first; :func:`use_cpu_cores` does):
 
     - no Eigen intra-op pool (:func:`without_eigen_pool`);
+    - with ``hoist_loops`` and jaxlib 0.10 or newer (the versions this was measured with):
+      ``xla_cpu_small_while_loop_byte_threshold`` (:data:`SMALL_WHILE_LOOP_BYTES`) among the
+      backend extra options, so that XLA compiles each of the engine's while loops into one
+      kernel instead of running its fused kernels (~160 per step) one runtime call at a time.
+      On two devices a map's lane steps take ~0.8x the time; on one device the forward-mode
+      shoots (periodic protocol, design gradients) compile up to 2.6x slower, hence the
+      test suite (compile-bound, one device per worker) turns it off;
     - ``--xla_cpu_prefer_vector_width=512`` where the CPU has AVX-512
-      (:func:`host_has_avx512`) and jaxlib is 0.10 or newer (the versions this flag was
-      measured with; XLA stops at an unknown flag). The engine's kernels are short
-      elementwise loops over the lanes, which 512-bit vectors run in half the instructions
-      (:data:`AVX512_VECTOR_WIDTH`).
+      (:func:`host_has_avx512`) and jaxlib is 0.10 or newer (XLA stops at an unknown flag).
+      The engine's kernels are short elementwise loops over the lanes, which 512-bit
+      vectors run in half the instructions (:data:`AVX512_VECTOR_WIDTH`).
 
-    The wide vectors change no step and no status; the papers' protocol gave the same
-    numbers bit for bit, a warm-started map P_out within 1.4e-10 (``bench/NOTES.md``).
+    Both change rounding only: the wide vectors gave the papers' protocol the same numbers
+    bit for bit and a warm-started map P_out within 1.4e-10; with the hoisted loops ten
+    engine calls' 34 float64 outputs moved by at most 4e-13 (relative) and a 25 000-cell
+    map kept its steady cells, its sum of P_out to 4e-13 and its steps to 0.05 %
+    (``bench/NOTES.md``).
+
+    **Arguments:**
+
+    - `hoist_loops`: whether to let XLA compile every while loop into one kernel.
     """
     without_eigen_pool()
     flags = os.environ.get("XLA_FLAGS", "")
+    if hoist_loops and _jaxlib_version() >= (0, 10):
+        flags = _with_extra_option(flags, SMALL_WHILE_LOOP_OPTION, SMALL_WHILE_LOOP_BYTES)
     if ("xla_cpu_prefer_vector_width" not in flags and host_has_avx512()
             and _jaxlib_version() >= (0, 10)):
-        os.environ["XLA_FLAGS"] = (
-            flags + f" --xla_cpu_prefer_vector_width={AVX512_VECTOR_WIDTH}").strip()
+        flags = (flags + f" --xla_cpu_prefer_vector_width={AVX512_VECTOR_WIDTH}").strip()
+    os.environ["XLA_FLAGS"] = flags
 
 
 def use_cpu_cores(n: int | None = None) -> int:
@@ -179,8 +219,9 @@ def use_cpu_cores(n: int | None = None) -> int:
     the cells on every core. It also turns off XLA's Eigen intra-op thread pool
     (``--xla_cpu_multi_thread_eigen=false``): the lane engine's ops are far too small to
     split, and the pool's spinning workers can take half of a core from a single device's
-    compute thread (measured: ``bench/NOTES.md``), and on CPUs with AVX-512 asks XLA for
-    512-bit vectors (:func:`cpu_flags`). Call it before JAX computes anything
+    compute thread (measured: ``bench/NOTES.md``); it lets XLA compile each of the engine's
+    while loops into one kernel, and on CPUs with AVX-512 asks XLA for 512-bit vectors
+    (:func:`cpu_flags`). Call it before JAX computes anything
     (the CLI does this at start); afterwards, or when ``XLA_FLAGS`` already sets
     ``--xla_force_host_platform_device_count``, the device count stays as it is.
 
