@@ -69,7 +69,7 @@ def test_sharded_runs_compile_no_collective(tmp_path):
 
     dump = tmp_path / "hlo"
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    hoist = sharding._with_extra_option("", sharding.SMALL_WHILE_LOOP_OPTION,
+    hoist = sharding.with_extra_option("", sharding.SMALL_WHILE_LOOP_OPTION,
                                         sharding.SMALL_WHILE_LOOP_BYTES)
     env.update(PYTHONPATH=SRC + os.pathsep + env.get("PYTHONPATH", ""),
                XLA_FLAGS=("--xla_force_host_platform_device_count=2 "
@@ -129,8 +129,9 @@ def test_cpu_flags_ask_for_wide_vectors_only_where_the_cpu_has_them(monkeypatch)
         sharding.cpu_flags()
         assert os.environ["XLA_FLAGS"] == want
     monkeypatch.setenv("XLA_FLAGS", "")
-    sharding.cpu_flags(hoist_loops=False)  # the test suite's flags
-    assert os.environ["XLA_FLAGS"] == eigen
+    sharding.cpu_flags(hoist_loops=False)  # the test suite's flags: no loop hoisted, said so
+    assert os.environ["XLA_FLAGS"] == (
+        f"{eigen} --xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0")
     monkeypatch.setenv("XLA_FLAGS", "")
     monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 9))  # flags not measured there
     sharding.cpu_flags()

@@ -24,6 +24,7 @@ import xarray as xr
 import jaxdea
 from jaxdea.cli import main
 from jaxdea.cli.args import parse_points, parse_range
+from jaxdea.engine.sharding import SMALL_WHILE_LOOP_OPTION, with_extra_option
 from jaxdea.studies.mapstore import open_map
 
 # the module (jaxdea.powermap is the function)
@@ -37,9 +38,13 @@ SRC = str(Path(__file__).parents[1] / "src")
 
 
 def _env(**extra) -> dict:
+    """A subprocess's environment: this checkout's jaxdea, ``extra`` (its own
+    ``XLA_FLAGS``, say), and no loop hoisting, as in this process (``conftest.py``), so
+    that a map the subprocess writes is this process's to the last bit."""
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env["PYTHONPATH"] = SRC + os.pathsep + env.get("PYTHONPATH", "")
     env.update(extra)
+    env["XLA_FLAGS"] = with_extra_option(env.get("XLA_FLAGS", ""), SMALL_WHILE_LOOP_OPTION, 0)
     return env
 
 

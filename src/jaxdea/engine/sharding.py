@@ -160,10 +160,18 @@ SMALL_WHILE_LOOP_BYTES = 1_000_000_000
 SMALL_WHILE_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 
 
-def _with_extra_option(flags: str, key: str, value) -> str:
-    """``flags`` (an ``XLA_FLAGS`` string) with ``key=value`` among its
-    ``--xla_backend_extra_options`` (appended to the user's own ones, or as a new flag);
-    unchanged where ``key`` is there already."""
+def with_extra_option(flags: str, key: str, value) -> str:
+    """An ``XLA_FLAGS`` string with one more XLA backend extra option.
+
+    **Arguments:**
+
+    - `flags`: the ``XLA_FLAGS`` string.
+    - `key`, `value`: the option (e.g. :data:`SMALL_WHILE_LOOP_OPTION` and a byte count).
+
+    **Returns:**
+
+    ``flags`` with ``key=value`` appended to its ``--xla_backend_extra_options`` (or as a
+    new such flag); ``flags`` itself where ``key`` is in it already (the user's choice)."""
     if key in flags:
         return flags
     words = flags.split()
@@ -185,7 +193,9 @@ def cpu_flags(hoist_loops: bool = True) -> None:
       kernel instead of running its fused kernels (~160 per step) one runtime call at a time.
       On two devices a map's lane steps take ~0.8x the time; on one device the forward-mode
       shoots (periodic protocol, design gradients) compile up to 2.6x slower, hence the
-      test suite (compile-bound, one device per worker) turns it off;
+      test suite (compile-bound, one device per worker) turns it off. Off, the threshold is
+      written out as 0 (no loop hoisted), so that a process started with these
+      ``XLA_FLAGS`` (a CLI run from the suite) compiles as its parent, to the last bit;
     - ``--xla_cpu_prefer_vector_width=512`` where the CPU has AVX-512
       (:func:`host_has_avx512`) and jaxlib is 0.10 or newer (XLA stops at an unknown flag).
       The engine's kernels are short elementwise loops over the lanes, which 512-bit
@@ -199,12 +209,14 @@ def cpu_flags(hoist_loops: bool = True) -> None:
 
     **Arguments:**
 
-    - `hoist_loops`: whether to let XLA compile every while loop into one kernel.
+    - `hoist_loops`: whether to let XLA compile every while loop into one kernel (else
+      none).
     """
     without_eigen_pool()
     flags = os.environ.get("XLA_FLAGS", "")
-    if hoist_loops and _jaxlib_version() >= (0, 10):
-        flags = _with_extra_option(flags, SMALL_WHILE_LOOP_OPTION, SMALL_WHILE_LOOP_BYTES)
+    if _jaxlib_version() >= (0, 10):
+        flags = with_extra_option(flags, SMALL_WHILE_LOOP_OPTION,
+                                   SMALL_WHILE_LOOP_BYTES if hoist_loops else 0)
     if ("xla_cpu_prefer_vector_width" not in flags and host_has_avx512()
             and _jaxlib_version() >= (0, 10)):
         flags = (flags + f" --xla_cpu_prefer_vector_width={AVX512_VECTOR_WIDTH}").strip()
