@@ -214,11 +214,11 @@ def cpu_flags(hoist_loops: bool = True) -> None:
     """
     without_eigen_pool()
     flags = os.environ.get("XLA_FLAGS", "")
-    if _jaxlib_version() >= (0, 10):
+    measured = _jaxlib_version() >= (0, 10)  # the versions both flags were measured with
+    if measured:
         flags = with_extra_option(flags, SMALL_WHILE_LOOP_OPTION,
-                                   SMALL_WHILE_LOOP_BYTES if hoist_loops else 0)
-    if ("xla_cpu_prefer_vector_width" not in flags and host_has_avx512()
-            and _jaxlib_version() >= (0, 10)):
+                                  SMALL_WHILE_LOOP_BYTES if hoist_loops else 0)
+    if measured and "xla_cpu_prefer_vector_width" not in flags and host_has_avx512():
         flags = (flags + f" --xla_cpu_prefer_vector_width={AVX512_VECTOR_WIDTH}").strip()
     os.environ["XLA_FLAGS"] = flags
 
