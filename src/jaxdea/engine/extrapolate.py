@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..models.cone import ConeState
+from .lane_state import scatter_each
 from .metrics import DYNAMICAL, Dynamics, dynamics, energies
 from .step_control import SCALES
 
@@ -274,10 +275,8 @@ def jump(lane, want, cycles, average, tol):
         x, error, step = jax.vmap(predict)(lane.history[safe], lane.cycle[safe], target)
         agree = (lane.guessed[safe] == lane.cycle[safe] - 1) & (
             jnp.max(jnp.abs(x - lane.guess[safe]), axis=1) <= AGREE * tol)
-        go = go.at[idx].set((error < tol) & agree, mode="drop")
-        x_all = x_all.at[idx].set(x, mode="drop")
-        step_all = step_all.at[idx].set(step, mode="drop")
-        return go, x_all, step_all, left.at[idx].set(False, mode="drop")
+        return scatter_each((go, x_all, step_all, left), idx,
+                            ((error < tol) & agree, x, step, jnp.zeros(k, bool)))
 
     x0 = jnp.zeros((n, lane.history.shape[-1]), lane.history.dtype)
     go, x, step, _ = jax.lax.while_loop(lambda c: jnp.any(c[-1]), batch,

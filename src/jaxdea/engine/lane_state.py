@@ -34,6 +34,40 @@ def select_cells(mask: Array, a, b):
         lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
+@jax.custom_jvp
+def _set_rows(out: Array, index: Array, rows: Array) -> Array:
+    return out.at[index].set(rows, mode="drop")
+
+
+@_set_rows.defjvp
+def _set_rows_jvp(primals, tangents):
+    # the tangent is set at the same rows through its own copy of the index (a scatter
+    # sharing the primal's index is a sibling, see scatter_each); JAX's own rule for a
+    # scatter that may repeat an index adds scatter-adds of the same index
+    out, index, rows = primals
+    d_out, _, d_rows = tangents
+    own = jax.lax.optimization_barrier(index)
+    return _set_rows(out, index, rows), _set_rows(d_out, own, d_rows)
+
+
+def scatter_each(out, index: Array, values):
+    """``out.at[index].set(values, mode="drop")`` leaf by leaf (``out`` and ``values`` pytrees
+    of one structure), each scatter, and each scatter's tangent, with its own copy of
+    ``index``.
+
+    Why: XLA's CPU multi-output fusion (:data:`~jaxdea.engine.sharding.MULTI_OUTPUT_FUSION`)
+    merges sibling scatters of one index into a kernel that its emitter aborts on (jaxlib
+    0.10.2: a failed check in ``symbolic_map.cc``, which kills the process); behind an
+    optimisation barrier each scatter has an index of its own and stays a kernel of its own,
+    as without the option. Same values either way.
+    """
+    leaves, tree = jax.tree_util.tree_flatten(out)
+    indices = jax.lax.optimization_barrier([index] * len(leaves))
+    return jax.tree_util.tree_unflatten(tree, [
+        _set_rows(o, i, v)
+        for o, i, v in zip(leaves, indices, tree.flatten_up_to(values), strict=True)])
+
+
 def reset_accumulators(y: ConeState) -> ConeState:
     """``y`` with the energy integrals set to zero (a new cell starts its own bookkeeping)."""
     return eqx.tree_at(lambda s: (s.payload_work, s.v2, s.energy_in), y,

@@ -65,6 +65,7 @@ from .lane_state import (
     first_step,
     reset_accumulators,
     rest_states,
+    scatter_each,
     select_cells,
 )
 from .metrics import (
@@ -416,8 +417,7 @@ def run_protocol(
         if not metrics:
             values["h"] = lane.h
         target = jnp.where(finished, lane.job, n_cells)  # index n_cells is dropped
-        return jax.tree_util.tree_map(
-            lambda o, m: o.at[target].set(m, mode="drop"), out, values)
+        return scatter_each(out, target, values)
 
     def round_(carry):
         lane, out, next_job = carry

@@ -37,7 +37,7 @@ import numpy as np
 from ..models.cone import ConeState
 from .batch import driven_membranes
 from .implicit import implicit
-from .lane_state import rest_states
+from .lane_state import rest_states, scatter_each
 from .lanes import run_protocol
 from .periodic import (
     STABLE_MULTIPLIER,
@@ -169,7 +169,7 @@ def jacobian_by_columns(f, z0: jax.Array, order: jax.Array | None = None,
     def body(i, carry):
         cols, aux = carry
         tangent, new = column(eye[order[i]])
-        cols = jax.tree_util.tree_map(lambda c, t: c.at[order[i]].set(t), cols, tangent)
+        cols = scatter_each(cols, order[i], tangent)
         aux = jax.tree_util.tree_map(lambda a, b: jnp.where(i == 0, b, a), aux, new)
         return cols, aux
 
