@@ -53,7 +53,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "bench"))
 
-import diffrax_baseline  # noqa: E402
 import jaxdea  # noqa: E402
 import scipy_reference  # noqa: E402
 
@@ -81,7 +80,7 @@ def main() -> None:
                  f"{args.protocols!r}")
     if args.every < 1:
         sys.exit(f"--every must be >= 1, got {args.every}")
-    jaxdea.use_cpu_cores()
+    jaxdea.use_cpu_cores(fuse_outputs=True)  # as the CLI's powermap
     out = run_slice(protocols, every=args.every, samples=args.samples, quick=args.quick,
                     store=args.store)
     print("RESULT " + " ".join(f"{k}={v}" for k, v in out.items()))
@@ -162,7 +161,7 @@ def run_slice(protocols: list[str], *, every: int = 10, samples: int = 8, quick:
             if reused:
                 out[f"{protocol}_chunks_reused"] = str(reused)
         out.update(lsoda_check(maps, walls, mass, damping, freq, samples))
-        out.update(diffrax_check(model, maps, walls, mass, damping, freq, samples))
+        out.update(diffrax_check(maps, walls, mass, damping, freq, samples))
         for pa, pb in (("paper", "periodic"), ("paper", "neighbour"), ("periodic", "neighbour"),
                        ("paper_nojump", "paper")):
             if pa not in maps or pb not in maps:
@@ -189,7 +188,7 @@ def _sampled(mass, damping, freq, samples):
             for k in idx_f]
 
 
-def diffrax_check(model, maps, walls, mass, damping, freq, samples) -> dict[str, str]:
+def diffrax_check(maps, walls, mass, damping, freq, samples) -> dict[str, str]:
     """What a JAX user writes without jaxdea (``bench/diffrax_baseline.py``: a plain vmap of
     ``diffrax.diffeqsolve``, Tsit5, PID, the edges as ``jump_ts``, 100 cycles from rest, mean
     of the last 5) on the sampled cells: its wall time per cell (second call, one device)
@@ -197,7 +196,7 @@ def diffrax_check(model, maps, walls, mass, damping, freq, samples) -> dict[str,
     cells = _sampled(mass, damping, freq, samples)
     i, j, k = (np.array(a) for a in zip(*cells))
     m, c, f = mass[i], damping[j], freq[k]
-    dfx = diffrax_baseline.diffrax_cells(model, m, c, f, cycles=100, average=5)
+    dfx = diffrax_elsewhere(m, c, f)
     per_cell = dfx["wall_s"] / len(cells)
     print(f"diffrax (plain vmap, 1 device): {len(cells)} sampled cells in {dfx['wall_s']:.2f} s "
           f"(second call; compile {dfx['compile_s']:.1f} s), {per_cell * 1e3:.1f} ms per cell; "
@@ -210,6 +209,47 @@ def diffrax_check(model, maps, walls, mass, damping, freq, samples) -> dict[str,
         out[f"{p}_diffrax_ratio"] = f"{per_cell / mine:.0f}"
         out[f"{p}_vs_diffrax_max_rel"] = f"{max(errs):.2e}"
     return out
+
+
+#: The baseline in a process of its own, with the engine's CPU flags but without multi-output
+#: fusion: XLA aborts compiling diffrax's saving under vmap with it (``jaxdea.engine.sharding.
+#: MULTI_OUTPUT_FUSION``), which this bench's maps use as the CLI's do.
+_DIFFRAX_CHILD = """
+import json, sys
+import numpy as np
+sys.path.insert(0, {bench!r})
+import jaxdea
+jaxdea.use_cpu_cores()
+import diffrax_baseline
+model = jaxdea.load_config({config!r})
+cells = json.loads(sys.stdin.read())
+out = diffrax_baseline.diffrax_cells(model, *(np.array(cells[k]) for k in ("m", "c", "f")),
+                                     cycles=cells["cycles"], average=5)
+print(json.dumps({{k: np.asarray(v).tolist() for k, v in out.items()}}))
+"""
+
+
+def diffrax_elsewhere(m, c, f, cycles: int = 100) -> dict:
+    """``diffrax_baseline.diffrax_cells`` of the DCDEA-LS cells ``(m, c, f)`` (``cycles``,
+    the last 5 averaged), run in a child process without multi-output fusion."""
+    import json
+    import os
+    import subprocess
+
+    from jaxdea.engine.sharding import MULTI_OUTPUT_FUSION, without_extra_option
+
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = without_extra_option(env.get("XLA_FLAGS", ""), MULTI_OUTPUT_FUSION)
+    code = _DIFFRAX_CHILD.format(bench=str(Path(__file__).parent),
+                                 config=str(ROOT / "configs" / "dcdea_ls.toml"))
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         input=json.dumps({"m": list(map(float, m)), "c": list(map(float, c)),
+                                           "f": list(map(float, f)), "cycles": int(cycles)}),
+                         check=False)
+    if res.returncode != 0:
+        raise RuntimeError(f"the diffrax baseline failed:\n{res.stderr[-2000:]}")
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def lsoda_check(maps, walls, mass, damping, freq, samples) -> dict[str, str]:

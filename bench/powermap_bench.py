@@ -66,7 +66,7 @@ def main() -> None:
     ap.add_argument("--no-slice", action="store_true",
                     help="skip the timed 1/10 slice of the full map (~10 min)")
     args = ap.parse_args()
-    n_dev = jaxdea.use_cpu_cores()  # before any JAX work: one device per core
+    n_dev = jaxdea.use_cpu_cores(fuse_outputs=True)  # before any JAX work: as the CLI's map
     periodic = periodic_section(args.quick)
     if args.periodic_only:
         print("RESULT " + " ".join(f"{k}={v}" for k, v in periodic.items()))
@@ -145,7 +145,6 @@ def diffrax_section(model, mass, damping, freq, idx_f, cycles, rng) -> dict[str,
     """diffrax's vmapped ensemble vs jaxdea's engine on the same map cells (module doc)."""
     import jax
 
-    from diffrax_baseline import diffrax_cells
     from jaxdea.engine.batch import run_cells
 
     per = 4
@@ -153,7 +152,7 @@ def diffrax_section(model, mass, damping, freq, idx_f, cycles, rng) -> dict[str,
     m = mass[rng.integers(len(mass), size=k.size)]
     c = damping[rng.integers(len(damping), size=k.size)]
     f = freq[k]
-    dfx = diffrax_cells(model, m, c, f, cycles=cycles, average=5)
+    dfx = full_map_slice.diffrax_elsewhere(m, c, f, cycles=cycles)  # not under our flags
     loading = jaxdea.make_loadings(model, m, c, f, drive="A")
     devices = tuple(jax.devices())
     times = {}

@@ -19,12 +19,15 @@ from jaxdea.engine.sharding import cpu_flags  # noqa: E402
 # lane engine's tiny ops, and its spinning workers can take half a core from the compute
 # thread), and 512-bit vectors where the CPU has AVX-512. Importing jaxdea does not start a
 # JAX backend, so this still takes effect. The wide vectors move a warm-started map's results by
-# ~1e-10 at most (bench/NOTES.md), far inside every tolerance here. The one flag left out is
-# the loop hoisting (every while loop one kernel): it makes maps on two devices ~0.8x faster
-# but one device's forward-mode shoots compile up to 2.6x slower, and the suite is
-# compile-bound. It is written out as off (threshold 0), so that CLI runs started from here
-# inherit it and write maps equal to this process's to the last bit; test_no_collectives runs
-# the CLI's flags, hoisting included, in a subprocess and checks its sweep against this one's.
+# ~1e-10 at most (bench/NOTES.md), far inside every tolerance here. Multi-output fusion (the
+# CLI's sweep and powermap only) is left out: XLA aborts on some programs the suite compiles
+# (diffrax's saving under vmap); test_no_collectives compiles the engine with it. The other
+# flag left out is the loop hoisting (every while loop one kernel): it makes maps on two
+# devices ~0.8x faster but one device's forward-mode shoots compile up to 2.6x slower, and
+# the suite is compile-bound. It is written out as off (threshold 0), so that CLI runs
+# started from here inherit it and write maps equal to this process's to the last bit;
+# test_no_collectives runs the CLI's flags, hoisting included, in a subprocess and checks its
+# sweep against this one's.
 cpu_flags(hoist_loops=False)
 
 # Compiled programs go to an on-disk cache shared by the pytest workers: many modules compile

@@ -27,6 +27,7 @@ import jaxdea
 import jaxdea.studies.powermap as pm
 from jaxdea.cli import main
 from jaxdea.cli.args import parse_points, parse_range
+from jaxdea.engine.sharding import MULTI_OUTPUT_FUSION, with_extra_option
 from jaxdea.studies.distributed import MIN_CLUSTER_CHUNK, cluster_units
 from jaxdea.studies.mapstore import PartWarning, open_map
 
@@ -198,7 +199,11 @@ def test_a_killed_client_resumes_with_only_the_missing_chunks(long_ref, jax_cach
     parts = Path(str(store) + ".parts")
     cmd = [sys.executable, "-m", "jaxdea.cli", "powermap", CONFIG, *LONG, *CLI_RUN,
            "--workers", "2", "--out", str(store)]
-    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=jax_cache, PYTHONPATH=str(ROOT / "src"))
+    # the CLI's powermap asks for multi-output fusion unless told no: without it, as this
+    # process, so that its chunks are this process's to the last bit
+    flags = with_extra_option(os.environ.get("XLA_FLAGS", ""), MULTI_OUTPUT_FUSION, "false")
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=jax_cache, PYTHONPATH=str(ROOT / "src"),
+               XLA_FLAGS=flags)
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True)
     try:

@@ -8,9 +8,10 @@ when one device's thread is that late, as happens on a busy core. This test runs
 a periodic sweep, paper and continuation power maps and a design solve (implicit
 gradients, :func:`jaxdea.engine.sensitivity.solve_designs`) on 2 CPU devices in a subprocess that
 dumps every optimized HLO module, and checks that none of them contains a collective.
-The subprocess has the CLI's XLA flags, loop hoisting included (the suite runs without it:
-``conftest.py``), so it also checks that the hoisted programs compile, really are hoisted,
-and give this process's paper sweep.
+The subprocess has the CLI map's XLA flags, loop hoisting and multi-output fusion included
+(the suite runs without them: ``conftest.py``), so it also checks that these programs
+compile (XLA's multi-output fusion has aborted on some), really are hoisted, and give this
+process's paper sweep.
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ def test_sharded_runs_compile_no_collective(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     hoist = sharding.with_extra_option("", sharding.SMALL_WHILE_LOOP_OPTION,
                                         sharding.SMALL_WHILE_LOOP_BYTES)
+    hoist = sharding.with_extra_option(hoist, sharding.MULTI_OUTPUT_FUSION, "true")
     env.update(PYTHONPATH=SRC + os.pathsep + env.get("PYTHONPATH", ""),
                XLA_FLAGS=("--xla_force_host_platform_device_count=2 "
                           f"--xla_cpu_multi_thread_eigen=false {hoist} "
@@ -107,11 +109,13 @@ def test_sharded_runs_compile_no_collective(tmp_path):
 def test_cpu_flags_ask_for_wide_vectors_only_where_the_cpu_has_them(monkeypatch):
     """``cpu_flags`` adds 512-bit vectors on an AVX-512 CPU, nothing on another one, and
     never overrides a width the user set; it lets XLA hoist the engine's while loops into
-    single kernels, next to the user's own backend extra options and never over their
-    threshold; and with an older jaxlib (not measured) it adds neither."""
+    single kernels and, when asked, build multi-output fusions, next to the user's own
+    backend extra options and never over their own setting of either; and with an older
+    jaxlib (not measured) it adds neither."""
     from jaxdea.engine import sharding
 
     eigen = "--xla_cpu_multi_thread_eigen=false"
+    mof = "xla_cpu_use_multi_output_fusion=true"
     hoist = "xla_cpu_small_while_loop_byte_threshold=1000000000"
     for avx512, given, want in [
             (True, "", f"{eigen} --xla_backend_extra_options={hoist} "
@@ -128,11 +132,28 @@ def test_cpu_flags_ask_for_wide_vectors_only_where_the_cpu_has_them(monkeypatch)
         monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 10))
         sharding.cpu_flags()
         assert os.environ["XLA_FLAGS"] == want
+    # multi-output fusion only when asked for (the CLI's sweep and powermap); the user's
+    # "=false" keeps it off, and is removed (XLA turns the option on by its presence)
+    for given, fuse, want in [
+            ("", True, f"{eigen} --xla_backend_extra_options={hoist},{mof}"),
+            (f"--xla_backend_extra_options={mof}", False,
+             f"--xla_backend_extra_options={mof},{hoist} {eigen}"),
+            ("--xla_backend_extra_options=xla_cpu_use_multi_output_fusion=false", True,
+             f"--xla_backend_extra_options={hoist} {eigen}")]:
+        monkeypatch.setenv("XLA_FLAGS", given)
+        sharding.cpu_flags(fuse_outputs=fuse)
+        assert os.environ["XLA_FLAGS"] == want
+    assert sharding.without_extra_option(
+        f"--a=1 --xla_backend_extra_options={mof} --b=2", sharding.MULTI_OUTPUT_FUSION) == (
+        "--a=1 --b=2")
+    assert sharding.without_extra_option(
+        f"--xla_backend_extra_options={hoist},{mof}", sharding.MULTI_OUTPUT_FUSION) == (
+        f"--xla_backend_extra_options={hoist}")
     monkeypatch.setenv("XLA_FLAGS", "")
     sharding.cpu_flags(hoist_loops=False)  # the test suite's flags: no loop hoisted, said so
     assert os.environ["XLA_FLAGS"] == (
         f"{eigen} --xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0")
     monkeypatch.setenv("XLA_FLAGS", "")
     monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 9))  # flags not measured there
-    sharding.cpu_flags()
+    sharding.cpu_flags(fuse_outputs=True)
     assert os.environ["XLA_FLAGS"] == eigen

@@ -24,7 +24,11 @@ import xarray as xr
 import jaxdea
 from jaxdea.cli import main
 from jaxdea.cli.args import parse_points, parse_range
-from jaxdea.engine.sharding import SMALL_WHILE_LOOP_OPTION, with_extra_option
+from jaxdea.engine.sharding import (
+    MULTI_OUTPUT_FUSION,
+    SMALL_WHILE_LOOP_OPTION,
+    with_extra_option,
+)
 from jaxdea.studies.mapstore import open_map
 
 # the module (jaxdea.powermap is the function)
@@ -39,12 +43,15 @@ SRC = str(Path(__file__).parents[1] / "src")
 
 def _env(**extra) -> dict:
     """A subprocess's environment: this checkout's jaxdea, ``extra`` (its own
-    ``XLA_FLAGS``, say), and no loop hoisting, as in this process (``conftest.py``), so
-    that a map the subprocess writes is this process's to the last bit."""
+    ``XLA_FLAGS``, say), and neither loop hoisting nor multi-output fusion, as in this
+    process (``conftest.py``), so that a map the subprocess writes is this process's to the
+    last bit (the CLI's ``powermap`` asks for multi-output fusion unless the user says
+    ``=false``, which it then removes: XLA turns it on by its presence)."""
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env["PYTHONPATH"] = SRC + os.pathsep + env.get("PYTHONPATH", "")
     env.update(extra)
-    env["XLA_FLAGS"] = with_extra_option(env.get("XLA_FLAGS", ""), SMALL_WHILE_LOOP_OPTION, 0)
+    flags = with_extra_option(env.get("XLA_FLAGS", ""), SMALL_WHILE_LOOP_OPTION, 0)
+    env["XLA_FLAGS"] = with_extra_option(flags, MULTI_OUTPUT_FUSION, "false")
     return env
 
 

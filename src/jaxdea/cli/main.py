@@ -34,7 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     from jaxdea.engine.sharding import use_compile_cache, use_cpu_cores
 
     if argv is None:  # the command line (not a call from Python, whose JAX may be in use)
-        use_cpu_cores()  # one JAX device per core: batched runs shard over all of them
+        # one JAX device per core: batched runs shard over all of them; multi-output fusion
+        # where only the lane engine compiles (XLA aborts on some other programs)
+        use_cpu_cores(fuse_outputs=args.command in ("sweep", "powermap"))
         use_compile_cache()  # a rerun on the same grid loads its compiled programs
 
     try:

@@ -158,6 +158,20 @@ def _jaxlib_version() -> tuple[int, int]:
 SMALL_WHILE_LOOP_BYTES = 1_000_000_000
 #: The backend extra option that sets it (:data:`SMALL_WHILE_LOOP_BYTES`).
 SMALL_WHILE_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
+#: The backend extra option that lets XLA's CPU fusion build multi-output fusions (off by
+#: default in jaxlib 0.10): one kernel computes several values from shared inputs, where
+#: single-output fusion copies a shared producer into every consumer (the lane step's fused
+#: operations were about twice its HLO operations). Measured with jaxlib 0.10.2: the copied
+#: lane step 0.72x the time on one device, the slice's 25 000-cell maps on two devices
+#: 0.89x (papers' protocol) and 0.76x (warm-started), compiles no slower
+#: (``bench/NOTES.md``). But its emitter aborts the process (a failed check in XLA's
+#: ``symbolic_map.cc``) on two scatters of one index merged into one kernel: the engine
+#: writes its scatters with :func:`~jaxdea.engine.lane_state.scatter_each`, which avoids
+#: that, but diffrax's ``diffeqsolve`` saving under ``vmap`` (the viscoelastic models'
+#: transients) and any user program may have them. Hence only the runs that compile the
+#: lane engine alone ask for it: ``use_cpu_cores(fuse_outputs=True)`` in the CLI's
+#: ``sweep`` and ``powermap`` and in the map benches.
+MULTI_OUTPUT_FUSION = "xla_cpu_use_multi_output_fusion"
 
 
 def with_extra_option(flags: str, key: str, value) -> str:
@@ -182,7 +196,32 @@ def with_extra_option(flags: str, key: str, value) -> str:
     return (flags + f" --xla_backend_extra_options={key}={value}").strip()
 
 
-def cpu_flags(hoist_loops: bool = True) -> None:
+def without_extra_option(flags: str, key: str) -> str:
+    """An ``XLA_FLAGS`` string without the XLA backend extra option ``key`` (whatever its
+    value: XLA turns some options on by their presence alone, ``key=false`` included), and
+    without an ``--xla_backend_extra_options`` left empty.
+
+    **Arguments:**
+
+    - `flags`: the ``XLA_FLAGS`` string.
+    - `key`: the option's name (e.g. :data:`MULTI_OUTPUT_FUSION`).
+
+    **Returns:**
+
+    ``flags`` without that option."""
+    words = []
+    for word in flags.split():
+        if word.startswith("--xla_backend_extra_options="):
+            kept = [o for o in word.split("=", 1)[1].split(",")
+                    if o and o.split("=", 1)[0] != key]
+            if not kept:
+                continue
+            word = "--xla_backend_extra_options=" + ",".join(kept)
+        words.append(word)
+    return " ".join(words)
+
+
+def cpu_flags(hoist_loops: bool = True, fuse_outputs: bool = False) -> None:
     """Add the lane engine's XLA CPU flags to ``XLA_FLAGS``, each unless it is set already
     (XLA reads them when the backend starts, so call this first; :func:`use_cpu_cores` does):
 
@@ -196,12 +235,17 @@ def cpu_flags(hoist_loops: bool = True) -> None:
       test suite (compile-bound, one device per worker) turns it off. Off, the threshold is
       written out as 0 (no loop hoisted), so that a process started with these
       ``XLA_FLAGS`` (a CLI run from the suite) compiles as its parent, to the last bit;
+    - with ``fuse_outputs`` and jaxlib 0.10 or newer, multi-output fusion
+      (:data:`MULTI_OUTPUT_FUSION`, a backend extra option): the lane step ~0.7x the time,
+      a map 0.75-0.9x; only for processes that compile the lane engine alone (XLA aborts
+      on some other programs: see there);
     - ``--xla_cpu_prefer_vector_width=512`` where the CPU has AVX-512
       (:func:`host_has_avx512`) and jaxlib is 0.10 or newer (XLA stops at an unknown flag).
       The engine's kernels are short elementwise loops over the lanes, which 512-bit
       vectors run in half the instructions (:data:`AVX512_VECTOR_WIDTH`).
 
-    Both change rounding only: the wide vectors gave the papers' protocol the same numbers
+    All three change rounding only: multi-output fusion moved a 25 000-cell map's sum of
+    P_out by 6e-12 (relative); the wide vectors gave the papers' protocol the same numbers
     bit for bit and a warm-started map P_out within 1.4e-10; with the hoisted loops ten
     engine calls' 34 float64 outputs moved by at most 4e-13 (relative) and a 25 000-cell
     map kept its steady cells, its sum of P_out to 4e-13 and its steps to 0.05 %
@@ -211,19 +255,26 @@ def cpu_flags(hoist_loops: bool = True) -> None:
 
     - `hoist_loops`: whether to let XLA compile every while loop into one kernel (else
       none).
+    - `fuse_outputs`: whether to ask for multi-output fusion (else it is left as it is).
+      ``xla_cpu_use_multi_output_fusion=false`` among the user's backend extra options
+      keeps it off: XLA turns it on by the option's presence, so that one is removed.
     """
     without_eigen_pool()
     flags = os.environ.get("XLA_FLAGS", "")
-    measured = _jaxlib_version() >= (0, 10)  # the versions both flags were measured with
+    measured = _jaxlib_version() >= (0, 10)  # the versions these flags were measured with
     if measured:
         flags = with_extra_option(flags, SMALL_WHILE_LOOP_OPTION,
                                   SMALL_WHILE_LOOP_BYTES if hoist_loops else 0)
+        if fuse_outputs:
+            flags = with_extra_option(flags, MULTI_OUTPUT_FUSION, "true")
+    if f"{MULTI_OUTPUT_FUSION}=false" in flags:  # the user's "no": XLA reads presence only
+        flags = without_extra_option(flags, MULTI_OUTPUT_FUSION)
     if measured and "xla_cpu_prefer_vector_width" not in flags and host_has_avx512():
         flags = (flags + f" --xla_cpu_prefer_vector_width={AVX512_VECTOR_WIDTH}").strip()
     os.environ["XLA_FLAGS"] = flags
 
 
-def use_cpu_cores(n: int | None = None) -> int:
+def use_cpu_cores(n: int | None = None, fuse_outputs: bool = False) -> int:
     """Make the CPU backend expose ``n`` devices (default: one per core) and return the count.
 
     XLA runs a single CPU device's batched elementwise work on one core; with one device per
@@ -240,13 +291,17 @@ def use_cpu_cores(n: int | None = None) -> int:
     **Arguments:**
 
     - `n`: the number of CPU devices (default: ``os.cpu_count()``).
+    - `fuse_outputs`: also ask XLA for multi-output fusion (:data:`MULTI_OUTPUT_FUSION`): a
+      map 0.75-0.9x the time, but XLA aborts the process compiling some other programs
+      (diffrax's saving under ``vmap``, for one), so only for a process that runs sweeps and
+      power maps alone (the CLI's ``sweep`` and ``powermap`` do).
 
     **Returns:**
 
     The CPU device count in effect.
     """
     n = int(n or os.cpu_count() or 1)
-    cpu_flags()
+    cpu_flags(fuse_outputs=fuse_outputs)
     if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
         try:
             jax.config.update("jax_num_cpu_devices", n)
