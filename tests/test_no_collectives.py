@@ -157,3 +157,31 @@ def test_cpu_flags_ask_for_wide_vectors_only_where_the_cpu_has_them(monkeypatch)
     monkeypatch.setattr(sharding, "_jaxlib_version", lambda: (0, 9))  # flags not measured there
     sharding.cpu_flags(fuse_outputs=True)
     assert os.environ["XLA_FLAGS"] == eigen
+
+
+def test_scatter_each_is_a_scatter_in_value_and_both_derivative_modes():
+    """``lane_state.scatter_each`` (the engine's scatters, kept apart for XLA's multi-output
+    fusion) writes what ``.at[index].set`` writes, dropping out-of-bound rows, and its
+    derivatives forward and reverse are that scatter's."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdea.engine.lane_state import scatter_each
+
+    index = jnp.array([1, 4, 4, 2])  # 4 is out of bounds: dropped (and repeated)
+
+    def mine(x):
+        out = (jnp.zeros(4), jnp.ones(4, jnp.int32))
+        y, k = scatter_each(out, index, (x * x, jnp.array([3, 5, 5, 2], jnp.int32)))
+        return y * k
+
+    def plain(x):
+        k = jnp.ones(4, jnp.int32).at[index].set(jnp.array([3, 5, 5, 2], jnp.int32), mode="drop")
+        return jnp.zeros(4).at[index].set(x * x, mode="drop") * k
+
+    x = jnp.array([1.0, 2.0, 3.0, 4.0])
+    np.testing.assert_array_equal(mine(x), plain(x))
+    np.testing.assert_array_equal(mine(x), [0.0, 3.0, 32.0, 0.0])
+    for mode in (jax.jacfwd, jax.jacrev):
+        np.testing.assert_array_equal(mode(mine)(x), mode(plain)(x))
+    assert float(jax.jacrev(mine)(x)[2, 3]) == 16.0  # row 2 is 2 x[3]^2

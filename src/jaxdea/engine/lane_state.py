@@ -43,17 +43,20 @@ def _set_rows(out: Array, index: Array, rows: Array) -> Array:
 def _set_rows_jvp(primals, tangents):
     # the tangent is set at the same rows through its own copy of the index (a scatter
     # sharing the primal's index is a sibling, see scatter_each); JAX's own rule for a
-    # scatter that may repeat an index adds scatter-adds of the same index
+    # scatter that may repeat an index adds scatter-adds of the same index. Declared unique
+    # (scatter_each's callers' in-bound indices are) so that reverse mode can transpose it.
     out, index, rows = primals
     d_out, _, d_rows = tangents
     own = jax.lax.optimization_barrier(index)
-    return _set_rows(out, index, rows), _set_rows(d_out, own, d_rows)
+    d = d_out.at[own].set(d_rows, mode="drop", unique_indices=True)
+    return _set_rows(out, index, rows), d
 
 
 def scatter_each(out, index: Array, values):
     """``out.at[index].set(values, mode="drop")`` leaf by leaf (``out`` and ``values`` pytrees
     of one structure), each scatter, and each scatter's tangent, with its own copy of
-    ``index``.
+    ``index``. Its in-bound entries must be distinct (out-of-bound ones, dropped, may
+    repeat), as in the engine's uses: reverse mode transposes the tangent as a gather.
 
     Why: XLA's CPU multi-output fusion (:data:`~jaxdea.engine.sharding.MULTI_OUTPUT_FUSION`)
     merges sibling scatters of one index into a kernel that its emitter aborts on (jaxlib
