@@ -90,6 +90,17 @@ TAIL_FROM = 64
 #: lanes a step costs its kernel launches whatever the width.
 CASCADE_FROM = 4096
 CASCADE = 8
+#: Steps per round (between two queue updates: harvest, refill, the blown lanes' NaN) of
+#: the papers' protocol's passes (:func:`jaxdea.engine.paper.run_paper`) where the
+#: transient does not jump; :func:`run_protocol`'s default stays 16, which the jump's records
+#: (one cycle-start state per round, :func:`jaxdea.engine.extrapolate.record`) and the
+#: one-period runs of the periodic protocol keep. With every engine loop one kernel and
+#: multi-output fusion a round costs about a step and a half whatever it does (skipping the
+#: harvest and refill in rounds where no cell finished saved nothing): 2048 DCDEA-LS cells
+#: at 60-200 Hz, papers' protocol without jumps, one device, 128 lanes, four interleaved
+#: rounds: 16 / 32 / 64 steps 3.87-4.02 / 3.51-3.71 / 3.50-3.60 s, the same results bit for
+#: bit (``bench/NOTES.md``).
+LONG_ROUND = 32
 #: Narrowest lane pool. XLA compiles a vmap of width 1 to scalar code that rounds differently
 #: from the vector code of every wider pool, so a cell run alone (a one-cell chunk per
 #: device, a one-frequency sweep) got other last bits than in company, and a chaotic cell a
