@@ -90,16 +90,11 @@ TAIL_FROM = 64
 #: lanes a step costs its kernel launches whatever the width.
 CASCADE_FROM = 4096
 CASCADE = 8
-#: Steps per round (between two queue updates: harvest, refill, the blown lanes' NaN) of
-#: the papers' protocol's passes (:func:`jaxdea.engine.paper.run_paper`) where the
-#: transient does not jump; :func:`run_protocol`'s default stays 16, which the jump's records
-#: (one cycle-start state per round, :func:`jaxdea.engine.extrapolate.record`) and the
-#: one-period runs of the periodic protocol keep. With every engine loop one kernel and
-#: multi-output fusion a round costs about a step and a half whatever it does (skipping the
-#: harvest and refill in rounds where no cell finished saved nothing): 2048 DCDEA-LS cells
-#: at 60-200 Hz, papers' protocol without jumps, one device, 128 lanes, four interleaved
-#: rounds: 16 / 32 / 64 steps 3.87-4.02 / 3.51-3.71 / 3.50-3.60 s, the same results bit for
-#: bit (``bench/NOTES.md``).
+#: Steps per round (between two queue updates) of the papers' protocol's passes that do not
+#: jump (:func:`jaxdea.engine.paper.run_paper`); 16 (:func:`run_protocol`'s default) where
+#: the transient may jump (its records take one cycle start a round) and elsewhere. A round
+#: costs about a step and a half: 0.91x without jumps, the same results bit for bit
+#: (``bench/NOTES.md``).
 LONG_ROUND = 32
 #: Narrowest lane pool. XLA compiles a vmap of width 1 to scalar code that rounds differently
 #: from the vector code of every wider pool, so a cell run alone (a one-cell chunk per
@@ -138,6 +133,13 @@ def lane_pools(n_lanes: int, strict: bool = False) -> tuple[int, ...]:
     if strict:
         return (*wide, n, round(math.sqrt(8 * n)), 8)
     return (*wide, n, 8)
+
+
+def may_jump(control: StepControl, settle: float | None, require_settled: bool) -> bool:
+    """Whether :func:`run_protocol`'s transient may jump (``StepControl.extrapolate``): a
+    tolerance given, with an early exit (``settle``) that does not require settling."""
+    return (settle is not None and not require_settled
+            and not isinstance(control.extrapolate, str | None))
 
 
 def batch_pools(n_cells: int, lanes: int | None = None, strict: bool = False) -> tuple[int, ...]:
@@ -244,8 +246,7 @@ def run_protocol(
     # the transient's extrapolation (StepControl.extrapolate, a tolerance; "auto" is the
     # studies' to resolve, off here): runs with an early exit of the papers' and the
     # continuation protocol only (not the periodic protocol's settling, nor one-period shots)
-    jump = control.extrapolate if (settle is not None and not require_settled
-                                   and not isinstance(control.extrapolate, str)) else None
+    jump = control.extrapolate if may_jump(control, settle, require_settled) else None
     if isinstance(cycles, int) and isinstance(average, int) and \
             _extrapolate.landing_cycle(cycles, average) < _extrapolate.HISTORY + 1:
         jump = None

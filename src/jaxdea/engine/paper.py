@@ -37,7 +37,7 @@ import jax.numpy as jnp
 
 from ..models.cone import ConeActuator, Loading
 from .lane_state import first_step, rest_states, select_cells
-from .lanes import LONG_ROUND, batch_pools, run_protocol
+from .lanes import LONG_ROUND, batch_pools, may_jump, run_protocol
 from .metrics import CycleMetrics
 from .step_control import StepControl
 
@@ -81,10 +81,10 @@ def run_paper(model: ConeActuator, loadings: Loading, *, cycles, average,
         run_a = run_a & jnp.asarray(active, bool)
     # rounds of LONG_ROUND steps, or of 16 where the transient may jump: its records take one
     # cycle-start state a round, and a lane that ends two cycles in one round misses one
-    jumps = settle is not None and not isinstance(control.extrapolate, str | None)
+    rounds = 16 if may_jump(control, settle, require_settled=False) else LONG_ROUND
     first, h = run_protocol(model, loadings, cycles=jnp.maximum(transient, 1), average=one,
                             initial=initial, active=run_a, metrics=False,
-                            steps_per_round=16 if jumps else LONG_ROUND, **common)
+                            steps_per_round=rounds, **common)
     failed = run_a & (first.status != 0)
     # stopped before its budget with status 0: the early exit met (never without `settle`)
     settled = run_a & (first.status == 0) & (first.cycles_run < transient)
